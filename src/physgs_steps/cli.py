@@ -1,0 +1,135 @@
+"""Command line: inspect the artifact plan and run single stages without Snakemake.
+
+    physgs plan bear                      # ids, paths and stage configs of a target
+    physgs stage fill bear                # run one stage of a target (inputs must exist)
+    physgs stage forward_sim bear --step it0
+    physgs stages bear                    # every stage of a target in order, in this process
+
+Snakemake is the way to run the pipeline (caching, clusters); this is for debugging a stage
+and for machines where only the library is installed (e.g. a GPU node for benchmarks).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from . import config as C
+from . import plan as P
+from .errors import PhysGSError
+from .runtime import project_root, run_stage, write_json
+
+STAGES = ("prepare", "cluster", "fill", "vlm_params", "forward_sim", "bgdo_update", "final_sim", "render", "metrics")
+
+
+def _stage_fn(name: str):
+    if name == "prepare":
+        from .prepare import run
+    elif name == "cluster":
+        from .cluster import run
+    elif name == "fill":
+        from .fill import run
+    elif name == "vlm_params":
+        from .params.stage import run
+    elif name == "forward_sim":
+        from .simulate import run_forward as run
+    elif name == "final_sim":
+        from .simulate import run_final as run
+    elif name == "bgdo_update":
+        from .bgdo import run
+    elif name == "render":
+        from .render.stage import run
+    elif name == "metrics":
+        from .metrics import run
+    else:
+        raise PhysGSError(f"unknown stage '{name}'; stages: {', '.join(STAGES)}")
+    return run
+
+
+def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, dict, dict]:
+    """(inputs, outputs, cfg) of one stage of a plan, as the Snakemake rules wire them."""
+    p = plan.path
+    if name == "prepare":
+        kind, src = C.resolve_source(plan.cfgs["prepare"]["scene"])
+        ins = {"source": str(src)} if kind == "file" else {}
+        return ins, {"scene": p("scene"), "transform": p("transform")}, plan.cfgs["prepare"]
+    if name == "cluster":
+        return {"scene": p("scene")}, {"labels": p("labels"), "clusters": p("clusters")}, plan.cfgs["cluster"]
+    if name == "fill":
+        return ({"scene": p("scene"), "transform": p("transform"), "labels": p("labels")},
+                {"particles": p("particles"), "report": p("fill_report")}, plan.cfgs["fill"])
+    if name == "vlm_params":
+        return ({"scene": p("scene"), "labels": p("labels"), "clusters": p("clusters")},
+                {"params": p("params0")}, plan.cfgs["params"])
+    if name in ("forward_sim", "final_sim"):
+        step = step or ("it0" if name == "forward_sim" else plan.steps[-1])
+        out = {"keyframes": p("forward", step)} if name == "forward_sim" else {"frames": p("final")}
+        return {"particles": p("particles"), "params": p("params", step)}, out, plan.cfgs["sim"]
+    if name == "bgdo_update":
+        if step is None or step == "it0":
+            raise PhysGSError("bgdo_update needs --step it<i>-<id> with i >= 1; the plan's steps: " + ", ".join(plan.steps))
+        prev = P.previous_step(step)
+        return ({"keyframes": p("forward", prev), "params": p("params", prev)},
+                {"params": p("params", step)}, plan.cfgs["bgdo"])
+    if name == "render":
+        return ({"frames": p("final"), "scene": p("scene"), "transform": p("transform")},
+                {"video": p("video"), "contact_sheet": p("contact_sheet"), "report": p("render_report")},
+                plan.cfgs["render"])
+    if name == "metrics":
+        return ({"video": p("video"), "frames": p("final"), "params": p("params", plan.steps[-1])},
+                {"metrics": p("metrics")}, plan.cfgs["metrics"])
+    raise PhysGSError(f"unknown stage '{name}'")
+
+
+def _ordered_jobs(plan: P.Plan) -> list[tuple[str, str | None]]:
+    jobs = [("prepare", None), ("cluster", None), ("fill", None), ("vlm_params", None)]
+    for i, step in enumerate(plan.steps[:-1]):
+        jobs += [("forward_sim", step), ("bgdo_update", plan.steps[i + 1])]
+    jobs += [("final_sim", None), ("render", None), ("metrics", None)]
+    return jobs
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="physgs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default=None, help="global config file (default config/config.yaml)")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    sp = sub.add_parser("plan", help="print the plan of a target")
+    sp.add_argument("target")
+    ss = sub.add_parser("stage", help="run one stage of a target")
+    ss.add_argument("stage", choices=STAGES)
+    ss.add_argument("target")
+    ss.add_argument("--step", default=None)
+    sa = sub.add_parser("stages", help="run every stage of a target in order (skips existing outputs unless --force)")
+    sa.add_argument("target")
+    sa.add_argument("--force", action="store_true")
+    sa.add_argument("--summary", default=None, help="write per-stage seconds and memory to this JSON file")
+    args = ap.parse_args(argv)
+    try:
+        cfg = C.load_config(args.config)
+        scene, abl = P.parse_target(args.target)
+        plan = P.make_plan(cfg, scene, abl)
+        if args.cmd == "plan":
+            print(json.dumps({"target": plan.target, "ids": plan.ids, "steps": plan.steps,
+                              "paths": {k: plan.path(k) for k in ("scene", "labels", "particles", "params0", "final", "video")},
+                              "cfgs": plan.cfgs}, indent=2, default=str))
+            return 0
+        jobs = [(args.stage, args.step)] if args.cmd == "stage" else _ordered_jobs(plan)
+        summary = []
+        for name, step in jobs:
+            ins, outs, scfg = stage_io(plan, name, step)
+            if args.cmd == "stages" and not args.force and all(Path(o).exists() for o in outs.values()):
+                continue
+            log = str(Path(P.RESULTS) / plan.target / "logs" / f"{name}{'-' + step if step else ''}.cli.log")
+            res = run_stage(name, _stage_fn(name), ins, outs, scfg, log)
+            summary.append({"stage": name, "step": step, **{k: v for k, v in res.items() if isinstance(v, (int, float, str))}})
+        if getattr(args, "summary", None):
+            write_json(args.summary, summary)
+        return 0
+    except PhysGSError as e:
+        print(f"physgs: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

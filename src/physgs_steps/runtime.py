@@ -1,0 +1,196 @@
+"""Stage plumbing shared by every stage: logging, timing, peak memory, atomic outputs,
+and the entry point that Snakemake ``script:`` adapters call.
+
+A stage is a function ``run(inputs, outputs, cfg, log) -> dict`` in a library module.
+``inputs``/``outputs`` map names to paths, ``cfg`` is the stage's validated config
+subset, ``log`` a :class:`logging.Logger`.  It returns a summary dict (seconds and peak
+memory are added here) that is logged and, where the stage writes a JSON report,
+included there.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import resource
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from .errors import PhysGSError
+
+LOG_FORMAT = "%(asctime)s %(levelname)s [%(name)s] %(message)s"
+
+
+def project_root() -> Path:
+    """The repository root (the folder holding ``Snakefile``), else the current folder."""
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        if (parent / "Snakefile").exists():
+            return parent
+    return Path.cwd()
+
+
+def cache_dir(name: str) -> Path:
+    """A project-local cache folder (``.cache/<name>``), overridable by PHYSGS_CACHE_DIR."""
+    base = Path(os.environ.get("PHYSGS_CACHE_DIR", project_root() / ".cache"))
+    d = base / name
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def get_logger(name: str, log_path: str | os.PathLike | None = None) -> logging.Logger:
+    log = logging.getLogger(f"physgs.{name}")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    for h in list(log.handlers):
+        log.removeHandler(h)
+    fmt = logging.Formatter(LOG_FORMAT)
+    sh = logging.StreamHandler(sys.stderr)
+    sh.setFormatter(fmt)
+    log.addHandler(sh)
+    if log_path:
+        Path(log_path).parent.mkdir(parents=True, exist_ok=True)
+        fh = logging.FileHandler(log_path, mode="w")
+        fh.setFormatter(fmt)
+        log.addHandler(fh)
+    return log
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process in MiB (Linux ru_maxrss is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def cuda_peak_mb() -> float | None:
+    """Peak CUDA memory allocated by torch in this process, or None without CUDA."""
+    torch = sys.modules.get("torch")  # never import torch just to ask
+    try:
+        if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+            return torch.cuda.max_memory_allocated() / 2**20
+    except Exception:  # pragma: no cover - torch broken
+        return None
+    return None
+
+
+def _reset_cuda_peak() -> None:
+    torch = sys.modules.get("torch")
+    try:
+        if torch is not None and torch.cuda.is_available() and torch.cuda.is_initialized():
+            torch.cuda.reset_peak_memory_stats()
+    except Exception:  # pragma: no cover
+        pass
+
+
+class Timer:
+    """Named wall-clock sections: ``with t.section("fill"): ...``; ``t.seconds`` dict."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def section(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; rename it onto ``path`` only on success.
+
+    A crash or an exception leaves no half-written artifact behind.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    """Write JSON atomically (sorted keys, numpy scalars converted)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "w") as f:
+            json.dump(obj, f, indent=2, sort_keys=True, default=_json_default)
+            f.write("\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    with open(path) as f:
+        return json.load(f)
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+StageFn = Callable[[dict, dict, dict, logging.Logger], dict]
+
+
+def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, log_path=None) -> dict:
+    """Run one stage with logging, timing and peak-memory accounting.
+
+    On a :class:`PhysGSError` the message is logged, every declared output that exists
+    is removed (no half-written artifact) and the process exits with status 1.
+    """
+    log = get_logger(name, log_path)
+    log.info("stage %s: inputs %s", name, {k: str(v) for k, v in inputs.items()})
+    _reset_cuda_peak()
+    t0 = time.perf_counter()
+    try:
+        summary = fn(dict(inputs), dict(outputs), cfg, log) or {}
+    except PhysGSError as e:
+        log.error("stage %s failed: %s", name, e)
+        _remove_outputs(outputs, log)
+        raise SystemExit(1) from None
+    except Exception:
+        log.error("stage %s crashed:\n%s", name, traceback.format_exc())
+        _remove_outputs(outputs, log)
+        raise SystemExit(1) from None
+    summary.setdefault("seconds", round(time.perf_counter() - t0, 3))
+    summary.setdefault("peak_rss_mb", round(peak_rss_mb(), 1))
+    cp = cuda_peak_mb()
+    if cp is not None:
+        summary.setdefault("cuda_peak_mb", round(cp, 1))
+    log.info("stage %s done in %.2f s (peak RSS %.0f MiB); outputs %s", name, summary["seconds"],
+             summary["peak_rss_mb"], {k: str(v) for k, v in outputs.items()})
+    return summary
+
+
+def _remove_outputs(outputs: dict, log: logging.Logger) -> None:
+    for v in outputs.values():
+        for p in v if isinstance(v, (list, tuple)) else [v]:
+            p = Path(p)
+            if p.is_file():
+                p.unlink()
+                log.info("removed incomplete output %s", p)
+
+
+def snakemake_io(smk) -> tuple[dict, dict, dict, str | None]:
+    """Turn a Snakemake ``snakemake`` script object into (inputs, outputs, cfg, log)."""
+    inputs = {k: v for k, v in smk.input.items()}
+    outputs = {k: v for k, v in smk.output.items()}
+    cfg = dict(getattr(smk.params, "cfg", None) or {})
+    log = smk.log[0] if len(smk.log) else None
+    return inputs, outputs, cfg, log

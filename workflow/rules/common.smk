@@ -1,0 +1,52 @@
+# Helpers shared by all rules: config validation, the artifact plan, resources.
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(workflow.basedir) / "src"))
+
+from physgs_steps import config as C
+from physgs_steps import plan as P
+
+C.validate_config(config)
+
+SCENES = sorted(p.stem for p in Path(config["scenes_dir"]).glob("*.yaml"))
+REG = P.Registry(config, SCENES)
+DEVICE = config["device"]
+
+
+wildcard_constraints:
+    scene=r"[A-Za-z0-9_\-]+",
+    target=r"[A-Za-z0-9_\-]+(/ablations/[A-Za-z0-9_\-]+)?",
+    cluster_id=r"[A-Za-z0-9_\-]+",
+    fill_id=r"[A-Za-z0-9_\-]+",
+    params_id=r"[A-Za-z0-9_\-]+",
+    sim_id=r"[A-Za-z0-9_\-]+",
+    step=r"it0|it[1-9][0-9]*-[0-9a-f]+",
+
+
+def plan_path(target, kind, step=None):
+    return REG.plan(target).path(kind, step)
+
+
+def plan_for(w, kind):
+    """The plan that owns the artifact id in this job's output path."""
+    ident = getattr(w, f"{kind}_id")
+    return REG.for_id(w.scene, kind, ident)
+
+
+def stage_cfg(kind, stage):
+    return lambda w: plan_for(w, kind).cfgs[stage]
+
+
+def gpu_count(stage):
+    """GPU stages ask for a GPU only when the configured device is CUDA."""
+    return 1 if DEVICE == "cuda" and stage in config["resources"]["gpu_stages"] else 0
+
+
+def res(stage, key):
+    r = config["resources"]["stages"].get(stage, {})
+    return r.get(key, config["resources"]["default"][key])
+
+
+def runtime_min(stage):
+    return lambda wildcards, attempt: int(res(stage, "runtime") * attempt)

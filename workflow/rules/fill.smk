@@ -1,0 +1,38 @@
+rule cluster:
+    input:
+        scene="results/{scene}/scene.ply",
+    output:
+        labels="results/{scene}/cluster/{cluster_id}/labels.npz",
+        clusters="results/{scene}/cluster/{cluster_id}/clusters.json",
+    params:
+        cfg=stage_cfg("cluster", "cluster"),
+    log:
+        "results/{scene}/logs/cluster-{cluster_id}.log",
+    benchmark:
+        "results/{scene}/benchmarks/cluster-{cluster_id}.tsv"
+    resources:
+        mem_mb=res("cluster", "mem_mb"),
+        runtime=runtime_min("cluster"),
+    script:
+        "../scripts/cluster.py"
+
+
+rule fill:
+    input:
+        scene="results/{scene}/scene.ply",
+        transform="results/{scene}/transform.json",
+        labels=lambda w: plan_for(w, "fill").path("labels"),
+    output:
+        particles="results/{scene}/fill/{fill_id}/particles.h5",
+        report="results/{scene}/fill/{fill_id}/fill_report.json",
+    params:
+        cfg=stage_cfg("fill", "fill"),
+    log:
+        "results/{scene}/logs/fill-{fill_id}.log",
+    benchmark:
+        "results/{scene}/benchmarks/fill-{fill_id}.tsv"
+    resources:
+        mem_mb=res("fill", "mem_mb"),
+        runtime=runtime_min("fill"),
+    script:
+        "../scripts/fill.py"

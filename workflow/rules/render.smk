@@ -1,0 +1,44 @@
+def render_inputs(w):
+    plan = REG.plan(w.target)
+    return {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform")}
+
+
+rule render:
+    input:
+        unpack(render_inputs),
+    output:
+        video="results/{target}/video.mp4",
+        contact_sheet="results/{target}/contact_sheet.png",
+        report="results/{target}/render.json",
+    params:
+        cfg=lambda w: REG.plan(w.target).cfgs["render"],
+    log:
+        "results/{target}/logs/render.log",
+    benchmark:
+        "results/{target}/benchmarks/render.tsv"
+    resources:
+        mem_mb=res("render", "mem_mb"),
+        runtime=runtime_min("render"),
+        gpu=gpu_count("render"),
+    script:
+        "../scripts/render.py"
+
+
+rule metrics:
+    input:
+        video="results/{target}/video.mp4",
+        frames=lambda w: REG.plan(w.target).path("final"),
+        params=lambda w: REG.plan(w.target).path("params"),
+    output:
+        metrics="results/{target}/metrics.json",
+    params:
+        cfg=lambda w: REG.plan(w.target).cfgs["metrics"],
+    log:
+        "results/{target}/logs/metrics.log",
+    benchmark:
+        "results/{target}/benchmarks/metrics.tsv"
+    resources:
+        mem_mb=res("metrics", "mem_mb"),
+        runtime=runtime_min("metrics"),
+    script:
+        "../scripts/metrics.py"

@@ -1,0 +1,68 @@
+def sim_inputs(w):
+    plan = plan_for(w, "sim")
+    return {"particles": plan.path("particles"), "params": plan.path("params", w.step)}
+
+
+rule forward_sim:
+    input:
+        unpack(sim_inputs),
+    output:
+        keyframes="results/{scene}/sim/{sim_id}/{step}/forward.h5",
+    params:
+        cfg=stage_cfg("sim", "sim"),
+    log:
+        "results/{scene}/logs/forward_sim-{sim_id}-{step}.log",
+    benchmark:
+        "results/{scene}/benchmarks/forward_sim-{sim_id}-{step}.tsv"
+    resources:
+        mem_mb=res("forward_sim", "mem_mb"),
+        runtime=runtime_min("forward_sim"),
+        gpu=gpu_count("forward_sim"),
+    script:
+        "../scripts/forward_sim.py"
+
+
+def bgdo_inputs(w):
+    plan = plan_for(w, "sim")
+    prev = P.previous_step(w.step)
+    return {"keyframes": plan.path("forward", prev), "params": plan.path("params", prev)}
+
+
+rule bgdo_update:
+    input:
+        unpack(bgdo_inputs),
+    output:
+        params="results/{scene}/sim/{sim_id}/{step}/params.json",
+    wildcard_constraints:
+        step=r"it[1-9][0-9]*-[0-9a-f]+",
+    params:
+        cfg=stage_cfg("sim", "bgdo"),
+    log:
+        "results/{scene}/logs/bgdo_update-{sim_id}-{step}.log",
+    benchmark:
+        "results/{scene}/benchmarks/bgdo_update-{sim_id}-{step}.tsv"
+    resources:
+        mem_mb=res("bgdo_update", "mem_mb"),
+        runtime=runtime_min("bgdo_update"),
+        gpu=gpu_count("bgdo_update"),
+    script:
+        "../scripts/bgdo_update.py"
+
+
+rule final_sim:
+    input:
+        unpack(sim_inputs),
+    output:
+        frames="results/{scene}/sim/{sim_id}/{step}/final.h5",
+    params:
+        cfg=stage_cfg("sim", "sim"),
+    log:
+        "results/{scene}/logs/final_sim-{sim_id}-{step}.log",
+    benchmark:
+        "results/{scene}/benchmarks/final_sim-{sim_id}-{step}.tsv"
+    resources:
+        mem_mb=res("final_sim", "mem_mb"),
+        runtime=runtime_min("final_sim"),
+        gpu=gpu_count("final_sim"),
+    script:
+        "../scripts/final_sim.py"
