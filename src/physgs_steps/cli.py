@@ -20,7 +20,7 @@ from . import plan as P
 from .errors import PhysGSError
 from .runtime import project_root, run_stage, write_json
 
-STAGES = ("prepare", "cluster", "fill", "vlm_params", "forward_sim", "bgdo_update", "final_sim", "render", "metrics")
+STAGES = ("prepare", "cluster", "fill", "vlm_params", "pinned_params", "forward_sim", "bgdo_update", "final_sim", "render", "metrics")
 
 
 def _stage_fn(name: str):
@@ -32,6 +32,8 @@ def _stage_fn(name: str):
         from .fill import run
     elif name == "vlm_params":
         from .params.stage import run
+    elif name == "pinned_params":
+        from .params.stage import run_pinned as run
     elif name == "forward_sim":
         from .simulate import run_forward as run
     elif name == "final_sim":
@@ -62,6 +64,8 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
     if name == "vlm_params":
         return ({"scene": p("scene"), "labels": p("labels"), "clusters": p("clusters")},
                 {"params": p("params0")}, plan.cfgs["params"])
+    if name == "pinned_params":
+        return {"clusters": p("clusters")}, {"params": p("params0")}, plan.cfgs["params"]
     if name in ("forward_sim", "final_sim"):
         step = step or ("it0" if name == "forward_sim" else plan.steps[-1])
         out = {"keyframes": p("forward", step)} if name == "forward_sim" else {"frames": p("final")}
@@ -83,7 +87,7 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
 
 
 def _ordered_jobs(plan: P.Plan) -> list[tuple[str, str | None]]:
-    jobs = [("prepare", None), ("cluster", None), ("fill", None), ("vlm_params", None)]
+    jobs = [("prepare", None), ("cluster", None), ("fill", None), ("pinned_params" if plan.pinned else "vlm_params", None)]
     for i, step in enumerate(plan.steps[:-1]):
         jobs += [("forward_sim", step), ("bgdo_update", plan.steps[i + 1])]
     jobs += [("final_sim", None), ("render", None), ("metrics", None)]

@@ -49,6 +49,7 @@ class Plan:
     cfgs: dict = field(default_factory=dict)  # stage -> cfg passed to the stage
     ids: dict = field(default_factory=dict)   # artifact kind -> id
     steps: list = field(default_factory=list)  # ["it0", "it1-<bgdo_id>", ...]
+    pinned: bool = False  # every instance pinned: params come from the scene file alone
 
     @property
     def target(self) -> str:
@@ -106,9 +107,14 @@ def make_plan(cfg: dict, scene: str, ablation: str | None = None) -> Plan:
     tag = fill["method"] if fill["method"] != "ipf" else f"ipf-{fill['occupancy']}-{'mcis' if fill['mcis'] else 'uniform'}"
     p.ids["fill"] = f"{tag}-" + short_hash([fill, p.ids["cluster"]])
 
+    from .params.stage import fully_pinned
+
     material_view = {"prompt": pub.get("prompt"), "instances": instances}
     p.cfgs["params"] = {"scene": pub, "materials": sec["materials"], "device": device}
-    p.ids["params"] = sec["materials"]["backend"] + "-" + short_hash([sec["materials"], material_view, p.ids["cluster"]])
+    # a scene that pins every instance leaves the material backend (vlm_params) out
+    p.pinned = fully_pinned(pub)
+    tag = "pinned" if p.pinned else sec["materials"]["backend"]
+    p.ids["params"] = tag + "-" + short_hash([material_view, p.ids["cluster"]] + ([] if p.pinned else [sec["materials"]]))
 
     bgdo = sec["bgdo"]
     forward_keys = {k: bgdo[k] for k in ("key_frames", "forward_frames") if k in bgdo}

@@ -5,6 +5,8 @@ rule vlm_params:
         clusters=lambda w: plan_for(w, "params").path("clusters"),
     output:
         params="results/{scene}/params/{params_id}/params.json",
+    wildcard_constraints:
+        params_id=r"(prior|qwen3vl|openai)-[0-9a-f]+",
     params:
         cfg=stage_cfg("params", "params"),
     log:
@@ -17,3 +19,21 @@ rule vlm_params:
         gpu=gpu_count("vlm_params"),
     script:
         "../scripts/vlm_params.py"
+
+
+# A scene whose instances are all fully pinned leaves vlm_params out: params come from the file.
+rule pinned_params:
+    input:
+        clusters=lambda w: plan_for(w, "params").path("clusters"),
+    output:
+        params="results/{scene}/params/{params_id}/params.json",
+    wildcard_constraints:
+        params_id=r"pinned-[0-9a-f]+",
+    params:
+        cfg=stage_cfg("params", "params"),
+    log:
+        "results/{scene}/logs/pinned_params-{params_id}.log",
+    benchmark:
+        "results/{scene}/benchmarks/pinned_params-{params_id}.tsv"
+    script:
+        "../scripts/pinned_params.py"

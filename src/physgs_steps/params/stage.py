@@ -274,3 +274,15 @@ def _document(records: list[dict], backend: str, prompt: str, kb: dict, kb_path:
     return {"instances": records, "backend": backend, "prompt": prompt, "history": [],
             "knowledge_base": {"path": str(kb_path), "materials": list(kb),
                                "sha256": hashlib.sha256(kb_path.read_bytes()).hexdigest() if kb_path.exists() else None}}
+
+
+def run_pinned(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
+    """Stage used instead of ``vlm_params`` when the scene pins every instance completely:
+    no backend is loaded or asked; params.json is built from the pins (and the knowledge base)."""
+    scene_cfg = cfg.get("scene") or {}
+    clusters = _read_json(inputs["clusters"])
+    params = pinned_params(scene_cfg, clusters)
+    write_json(outputs["params"], params)
+    log.info("all %d instances pinned in the scene file: no material backend asked; wrote %s",
+             len(params["instances"]), outputs["params"])
+    return {"n_instances": len(params["instances"]), "backend": "pinned"}

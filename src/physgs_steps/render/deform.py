@@ -1,0 +1,245 @@
+"""Simulated frames -> deformed gaussians in the scene's source frame.
+
+PhysGaussian's kinematics (FastPhysGS Eq. 3): a gaussian moves with its particle,
+``mu(t) = x_p(t)``, and its covariance follows the particle's deformation gradient,
+``Sigma(t) = F(t) Sigma F(t)^T``.
+
+Frames: ``scene.ply`` and ``final.h5`` are in the simulation frame,
+``x_sim = s R (x_src - c_src) + c_sim``. Rendering happens in the source frame so that the
+capture's own cameras (``cameras.json``) apply unchanged:
+
+* means: ``x_src = R^T (x_sim - c_sim) / s + c_src``;
+* deformation gradients: ``F_src = R^T F_sim R`` (the scale cancels);
+* covariances: ``Sigma_src(t) = F_src Sigma_src F_src^T`` with ``Sigma_src`` the rest
+  covariance in the source frame (the sim-frame covariance divided by ``s^2`` and rotated
+  back).
+
+View-dependent colour: the SH coefficients stay in the source (rest) frame. A deformed
+gaussian is rotated by the polar rotation ``R_p`` of ``F_src = R_p S``; its colour along a
+world view direction ``d`` is the rest radiance along ``R_p^T d``. We rotate the view
+directions (see :mod:`physgs_steps.render.sh`), not the coefficients. With SH degree 0
+there is no view dependence and the polar decomposition is skipped.
+
+Gaussians of ``scene.ply`` not listed in ``final.h5``'s ``gaussian_index`` are drawn at
+rest (F = I); the stage logs how many. Filled (interior) particles are never drawn: they
+are not gaussians of ``scene.ply`` and ``gaussian_index`` can only point at those.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..errors import RenderError
+from ..gaussians import GaussianScene
+
+NONFINITE_POLICIES = ("error", "hide")
+
+
+@dataclass
+class Gaussians:
+    """Gaussians ready to render (one frame), torch tensors on one device.
+
+    Attributes:
+        means: [N, 3] centres.
+        covars: [N, 3, 3] covariances.
+        opacities: [N] in [0, 1].
+        sh: [N, K, 3] SH coefficients in each gaussian's rest frame.
+        rotations: [N, 3, 3] rest -> current rotation per gaussian, or None (= identity).
+    """
+
+    means: torch.Tensor
+    covars: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+    rotations: torch.Tensor | None = None
+
+    @property
+    def n(self) -> int:
+        return int(self.means.shape[0])
+
+    @staticmethod
+    def from_scene(scene: GaussianScene, device="cpu") -> "Gaussians":
+        """Static gaussians of a scene, in the scene's own frame."""
+        return Gaussians(
+            means=torch.from_numpy(scene.means).to(device),
+            covars=torch.from_numpy(scene.covariances().astype(np.float32)).to(device),
+            opacities=torch.from_numpy(scene.opacities).to(device),
+            sh=torch.from_numpy(scene.sh).to(device),
+        )
+
+
+@dataclass
+class SourceMap:
+    """Similarity map back from the simulation frame: ``x_src = R^T (x_sim - c_sim) / s + c_src``.
+
+    Attributes:
+        R: [3, 3] rotation source -> sim.
+        scale: s.
+        src_center: [3] c_src.
+        sim_center: [3] c_sim.
+    """
+
+    R: np.ndarray
+    scale: float
+    src_center: np.ndarray
+    sim_center: np.ndarray
+
+    @staticmethod
+    def from_transform(t) -> "SourceMap":
+        """From a :class:`physgs_steps.prepare.SceneTransform` (``load_transform``)."""
+        return SourceMap(np.asarray(t.R, np.float64), float(t.scale), np.asarray(t.src_center, np.float64),
+                         np.asarray(t.sim_center, np.float64))
+
+    @staticmethod
+    def identity() -> "SourceMap":
+        return SourceMap(np.eye(3), 1.0, np.zeros(3), np.zeros(3))
+
+    def points(self, x: torch.Tensor) -> torch.Tensor:
+        """[..., 3] sim-frame points -> source frame."""
+        R = torch.as_tensor(self.R, dtype=x.dtype, device=x.device)
+        c_sim = torch.as_tensor(self.sim_center, dtype=x.dtype, device=x.device)
+        c_src = torch.as_tensor(self.src_center, dtype=x.dtype, device=x.device)
+        return (x - c_sim) @ R / self.scale + c_src
+
+    def linear(self, F: torch.Tensor) -> torch.Tensor:
+        """[..., 3, 3] sim-frame linear maps (deformation gradients) -> ``R^T F R``."""
+        R = torch.as_tensor(self.R, dtype=F.dtype, device=F.device)
+        return R.T @ F @ R
+
+    def covariances(self, cov: torch.Tensor) -> torch.Tensor:
+        """[..., 3, 3] sim-frame covariances -> ``R^T C R / s^2``."""
+        return self.linear(cov) / (self.scale ** 2)
+
+
+def rest_gaussians(scene_sim: GaussianScene, smap: SourceMap, device="cpu") -> Gaussians:
+    """The undeformed scene (given in the simulation frame) in the source frame."""
+    g = Gaussians.from_scene(scene_sim, device)
+    g.means = smap.points(g.means.double()).float()
+    g.covars = smap.covariances(g.covars.double()).float()
+    return g
+
+
+def polar_rotation(F: torch.Tensor, max_iter: int = 30) -> torch.Tensor:
+    """Rotation part ``R = U V^T`` of ``F = U diag(sig) V^T`` with U, V proper rotations.
+
+    Rows with det F > 0 use Higham's scaled Newton iteration
+    ``X <- (g X + X^-T / g) / 2``, ``g = |det X|^(-1/3)`` (elementwise 3x3 algebra, fast on
+    CPU and GPU, quadratic convergence); rows with det F <= 0 (inverted or degenerate
+    elements) and rows that have not converged use the SVD, where for an inverted F the last
+    singular value is taken negative, as in docs/CONTRACTS.md.
+
+    Args:
+        F: [N, 3, 3].
+        max_iter: Newton iterations at most.
+    Returns:
+        [N, 3, 3] rotations (det +1).
+    """
+    tol = 1e-12 if F.dtype == torch.float64 else 1e-6
+    det = torch.linalg.det(F)
+    good = det > 1e-12 * F.flatten(1).abs().amax(dim=1).clamp_min(1e-30) ** 3
+    X = torch.where(good[:, None, None], F, torch.eye(3, dtype=F.dtype, device=F.device).expand_as(F))
+    converged = False
+    for _ in range(max_iter):
+        inv_t, d = _inverse_transpose(X)
+        g = d.abs().pow(-1.0 / 3.0)[:, None, None]
+        nxt = 0.5 * (g * X + inv_t / g)
+        change = (nxt - X).abs().amax()
+        X = nxt
+        if float(change) < tol:
+            converged = True
+            break
+    redo = ~good
+    if not converged:
+        err = (X @ X.transpose(1, 2) - torch.eye(3, dtype=F.dtype, device=F.device)).abs().flatten(1).amax(dim=1)
+        redo |= err > 100 * tol
+    if bool(redo.any()):
+        X = X.clone()
+        X[redo] = _polar_svd(F[redo])
+    return X
+
+
+def _inverse_transpose(X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """([N, 3, 3] X^-T, [N] det X) from cofactors: the rows of X^-T are r1 x r2, r2 x r0, r0 x r1 over det."""
+    r0, r1, r2 = X[:, 0], X[:, 1], X[:, 2]
+    cof = torch.stack([torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], dim=1)
+    det = (r0 * cof[:, 0]).sum(dim=1)
+    return cof / det[:, None, None], det
+
+
+def _polar_svd(F: torch.Tensor) -> torch.Tensor:
+    """Polar rotation through the SVD with proper U, V (works for any F)."""
+    U, _, Vh = torch.linalg.svd(F)
+    U = U.clone()
+    Vh = Vh.clone()
+    U[torch.det(U) < 0, :, 2] *= -1
+    Vh[torch.det(Vh) < 0, 2, :] *= -1
+    return U @ Vh
+
+
+def check_frame(frame: int, x: np.ndarray | torch.Tensor, F: np.ndarray | torch.Tensor, policy: str) -> torch.Tensor | None:
+    """Non-finite rows of one frame.
+
+    Args:
+        frame: frame number (for the message).
+        x: [Nv, 3] positions; F: [Nv, 3, 3] deformation gradients.
+        policy: ``error`` raises :class:`RenderError`; ``hide`` returns the [Nv] bool mask of bad rows.
+    Returns:
+        None when every row is finite, else the mask (policy ``hide``).
+    """
+    x = torch.as_tensor(x)
+    F = torch.as_tensor(F)
+    bad = ~(torch.isfinite(x).all(dim=1) & torch.isfinite(F).flatten(1).all(dim=1))
+    n_bad = int(bad.sum())
+    if n_bad == 0:
+        return None
+    if policy == "error" or n_bad == bad.numel():
+        raise RenderError(
+            f"frame {frame}: {n_bad} of {bad.numel()} particles have NaN/inf position or deformation gradient "
+            "(the simulation diverged; lower the time step or stiffness, or set render.on_nonfinite: hide "
+            "to draw the frame without them)")
+    return bad
+
+
+def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: torch.Tensor, smap: SourceMap,
+           with_rotation: bool, hide: torch.Tensor | None = None) -> Gaussians:
+    """Gaussians of one simulated frame, in the source frame.
+
+    Args:
+        rest: [N] rest gaussians in the source frame (:func:`rest_gaussians`).
+        index: [Nv] int64 rows of ``rest`` that the simulation moved (``gaussian_index``).
+        x_sim: [Nv, 3] simulated positions (sim frame).
+        F_sim: [Nv, 3, 3] deformation gradients (sim frame).
+        smap: the map back to the source frame.
+        with_rotation: compute the polar rotations for view-dependent SH (degree > 0).
+        hide: optional [Nv] bool rows to leave out of this frame (drawn with opacity 0).
+    Returns:
+        :class:`Gaussians` with N rows (rows not in ``index`` stay at rest).
+    """
+    dev = rest.means.device
+    x = smap.points(x_sim.to(dev, torch.float64)).float()
+    Fs = smap.linear(F_sim.to(dev, torch.float64)).float()
+    opac = rest.opacities
+    if hide is not None:
+        x = torch.where(hide[:, None].to(dev), torch.zeros_like(x), x)
+        Fs = torch.where(hide[:, None, None].to(dev), torch.eye(3, device=dev).expand_as(Fs), Fs)
+    full = index.numel() == rest.n and bool((index == torch.arange(rest.n, device=index.device)).all())
+    idx = index.to(dev)
+    cov_rows = Fs @ rest.covars[idx] @ Fs.transpose(1, 2)
+    rot_rows = polar_rotation(Fs) if with_rotation else None
+    if full:
+        means, covars, rots = x, cov_rows, rot_rows
+    else:
+        means = rest.means.clone()
+        means[idx] = x
+        covars = rest.covars.clone()
+        covars[idx] = cov_rows
+        rots = None
+        if rot_rows is not None:
+            rots = torch.eye(3, device=dev).repeat(rest.n, 1, 1)
+            rots[idx] = rot_rows
+    if hide is not None:
+        opac = opac.clone()
+        opac[idx[hide.to(dev)]] = 0.0
+    return Gaussians(means=means, covars=covars, opacities=opac, sh=rest.sh, rotations=rots)

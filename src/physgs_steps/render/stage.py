@@ -1,0 +1,377 @@
+"""Stage ``render``: final.h5 -> video.mp4, contact_sheet.png, render.json.
+
+Inputs: ``frames`` (final.h5), ``scene`` (scene.ply, sim frame), ``transform``
+(transform.json), optional ``cameras`` (an INRIA cameras.json, source frame).
+Outputs: ``video`` (H.264 mp4), ``contact_sheet`` (PNG grid of frames), ``report``
+(render.json), optional ``frames`` (folder of PNGs; default ``frames/`` next to the video
+when ``render.png_frames`` is set).
+
+Bad input is reported, never rendered into a silent black video:
+* a camera inside the object (inside the 2-98 % box of the simulated gaussians' centres with
+  > 5 % of them behind the near plane), or all of them behind the near plane: RenderError;
+* some gaussians behind the near plane (clipped): logged per frame, listed in the report;
+* NaN/inf positions or deformation gradients: RenderError, or with ``on_nonfinite: hide``
+  the frame is drawn without them (logged, counted in the report);
+* frames in which nothing covers a pixel: logged and listed; if that is every frame,
+  RenderError (and no video is written).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..config import load_schema, validate
+from ..errors import ConfigError, InputError, RenderError
+from ..prepare import load_transform
+from ..runtime import project_root, write_json
+from ..scene_io import load_gaussians
+from . import cameras as C
+from .deform import NONFINITE_POLICIES, SourceMap, check_frame, deform, rest_gaussians
+from .renderer import Renderer, RenderSettings, resolve_backend
+from .video import FrameDir, VideoWriter, contact_sheet, sheet_indices, write_png
+
+CLIP_WARN_FRACTION = 0.05  # > 5 % of the centres behind the near plane: clipped (inside the box: error)
+COVERED_ALPHA = 0.5  # a pixel counts as covered at accumulated alpha above this
+
+
+# ---------------------------------------------------------------------------- final.h5
+class FinalFrames:
+    """Read-only access to final.h5 (``x`` [T, Nv, 3], ``F`` [T, Nv, 3, 3], ``gaussian_index`` [Nv], ``time`` [T])."""
+
+    def __init__(self, path, n_gaussians: int):
+        import h5py
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise InputError(self.path, "frames file not found")
+        try:
+            self.h5 = h5py.File(self.path, "r")
+        except OSError as e:
+            raise InputError(self.path, f"not a readable HDF5 file: {e}") from None
+        missing = [k for k in ("x", "F", "gaussian_index", "time") if k not in self.h5]
+        if missing:
+            self.close()
+            raise InputError(self.path, f"missing datasets {missing} (expected x, F, gaussian_index, time)")
+        x, F = self.h5["x"], self.h5["F"]
+        self.n_frames, self.nv = int(x.shape[0]), int(x.shape[1]) if x.ndim == 3 else -1
+        problems = []
+        if x.ndim != 3 or x.shape[2] != 3:
+            problems.append(f"x has shape {x.shape}, expected [T, Nv, 3]")
+        elif F.shape != (self.n_frames, self.nv, 3, 3):
+            problems.append(f"F has shape {F.shape}, expected {(self.n_frames, self.nv, 3, 3)}")
+        if self.n_frames < 1 or self.nv < 1:
+            problems.append(f"no frames or particles (x has shape {x.shape})")
+        if not problems:
+            self.index = np.asarray(self.h5["gaussian_index"][...], dtype=np.int64)
+            self.time = np.asarray(self.h5["time"][...], dtype=np.float64)
+            if self.index.shape != (self.nv,):
+                problems.append(f"gaussian_index has shape {self.index.shape}, expected ({self.nv},)")
+            elif self.index.min() < 0 or self.index.max() >= n_gaussians:
+                problems.append(f"gaussian_index spans [{self.index.min()}, {self.index.max()}], "
+                                f"scene.ply has {n_gaussians} gaussians")
+            elif np.unique(self.index).size != self.nv:
+                problems.append("gaussian_index has repeated rows")
+            if self.time.shape != (self.n_frames,):
+                problems.append(f"time has shape {self.time.shape}, expected ({self.n_frames},)")
+        if problems:
+            self.close()
+            raise InputError(self.path, "; ".join(problems))
+
+    def x(self, t: int) -> np.ndarray:
+        """[Nv, 3] float32 sim-frame positions of frame t."""
+        return np.asarray(self.h5["x"][t], dtype=np.float32)
+
+    def F(self, t: int) -> np.ndarray:
+        """[Nv, 3, 3] float32 deformation gradients of frame t."""
+        return np.asarray(self.h5["F"][t], dtype=np.float32)
+
+    def close(self) -> None:
+        self.h5.close()
+
+
+# ---------------------------------------------------------------------------- config
+def camera_config(scene_cfg: dict) -> dict:
+    """The scene's ``camera`` block with defaults filled (scene_camera.schema.yaml)."""
+    cam = dict((scene_cfg or {}).get("camera") or {})
+    return validate(cam, load_schema("scene_camera.schema.yaml"), "scene camera", "camera")
+
+
+def settings_from_config(rcfg: dict) -> RenderSettings:
+    if rcfg["on_nonfinite"] not in NONFINITE_POLICIES:
+        raise ConfigError("render.on_nonfinite", f"must be one of {NONFINITE_POLICIES}")
+    if rcfg["far"] <= rcfg["near"]:
+        raise ConfigError("render.far", f"far ({rcfg['far']}) must exceed near ({rcfg['near']})")
+    return RenderSettings(background=tuple(float(v) for v in rcfg["background"]), sh_degree=int(rcfg["sh_degree"]),
+                          near=float(rcfg["near"]), far=float(rcfg["far"]), eps2d=float(rcfg["eps2d"]),
+                          compositor=rcfg["cpu_compositor"])
+
+
+def image_size(rcfg: dict, ccfg: dict) -> tuple[int, int]:
+    w = ccfg.get("width") or rcfg["width"]
+    h = ccfg.get("height") or rcfg["height"]
+    if int(w) < 1 or int(h) < 1:
+        raise ConfigError("render.width/height", f"image size {w}x{h} is empty")
+    return int(w), int(h)
+
+
+# ---------------------------------------------------------------------------- cameras
+def motion_bounds(frames: FinalFrames, sel: list[int], smap: SourceMap, rest_means: torch.Tensor,
+                  static_rows: np.ndarray, max_rows: int = 20000) -> tuple[np.ndarray, np.ndarray]:
+    """Union over the selected frames of the 1-99 % box of the source-frame centres ([3] lo, [3] hi)."""
+    stride = max(1, int(math.ceil(frames.nv / max_rows)))
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    pts = []
+    if static_rows.size:
+        pts.append(rest_means[torch.as_tensor(static_rows[::stride], device=rest_means.device)].double().cpu().numpy())
+    for t in sel:
+        x = torch.from_numpy(frames.x(t)[::stride]).double()
+        x = x[torch.isfinite(x).all(dim=1)]
+        if x.shape[0]:
+            pts.append(smap.points(x).numpy())
+    for p in pts:
+        b = np.percentile(p, [1.0, 99.0], axis=0)
+        lo, hi = np.minimum(lo, b[0]), np.maximum(hi, b[1])
+    if not np.isfinite(lo).all():
+        raise RenderError(f"{frames.path}: no finite particle positions in the rendered frames")
+    return lo, hi
+
+
+def build_cameras(ccfg: dict, rcfg: dict, frame_ids: list[int], bounds, cameras_path, log: logging.Logger) -> tuple[list[C.Camera], dict]:
+    """One camera per rendered frame, and a record of how they were chosen.
+
+    Args:
+        ccfg: the scene's ``camera`` block; rcfg: the ``render`` section.
+        frame_ids: simulated frame numbers being rendered (per-frame deltas use them).
+        bounds: callable returning ([3] lo, [3] hi) of the motion, called only when needed.
+        cameras_path: cameras.json path or None.
+    """
+    width, height = image_size(rcfg, ccfg)
+    if ccfg["mode"] == "cameras_json":
+        path = cameras_path or ccfg.get("cameras_json")
+        if not path:
+            raise ConfigError("camera.cameras_json", "mode is cameras_json but no cameras.json was given")
+        path = Path(path)
+        if not path.is_absolute() and not path.exists():
+            path = project_root() / path
+        cams = C.load_inria_cameras(path)
+        i = int(ccfg["camera_index"])
+        if i >= len(cams):
+            raise ConfigError("camera.camera_index", f"{path} has {len(cams)} cameras, index {i} does not exist")
+        cam = cams[i]
+        w = ccfg.get("width") or rcfg["width"]
+        h = ccfg.get("height") or max(1, int(round(w * cam.height / cam.width)))
+        cam = cam.resized(int(w), int(h))
+        log.info("camera %d (%s) of %s, rendered at %dx%d", i, cam.name, path, cam.width, cam.height)
+        return [cam] * len(frame_ids), {"mode": "cameras_json", "path": str(path), "index": i, "name": cam.name,
+                                        "position": cam.position.tolist(), "width": cam.width, "height": cam.height}
+    look_at, radius = ccfg["look_at"], ccfg["radius"]
+    record = {"mode": "orbit"}
+    if look_at is None or radius is None:
+        lo, hi = bounds()
+        record["motion_bounds"] = [lo.tolist(), hi.tolist()]
+        if look_at is None:
+            look_at = ((lo + hi) / 2.0).tolist()
+        if radius is None:
+            sphere = 0.5 * float(np.linalg.norm(hi - lo))
+            k = C.intrinsics_from_fov(ccfg["fov_deg"], width, height)
+            half_fov = min(math.atan(0.5 * height / k[1, 1]), math.atan(0.5 * width / k[0, 0]))
+            radius = max(sphere, 1e-6) * ccfg["fit_margin"] / math.sin(half_fov)
+    f0 = frame_ids[0]
+    cams = []
+    for t in frame_ids:
+        d = t - f0
+        cam = C.orbit_cameras(look_at, radius + d * ccfg["radius_per_frame"], 1,
+                              ccfg["elevation_deg"] + d * ccfg["elevation_per_frame_deg"], ccfg["fov_deg"],
+                              width, height, azimuth_deg=ccfg["azimuth_deg"] + d * ccfg["azimuth_per_frame_deg"],
+                              up=ccfg["up"])[0]
+        cams.append(C.Camera(cam.viewmat, cam.K, cam.width, cam.height, f"orbit_frame_{t:05d}"))
+    record.update({"look_at": [float(v) for v in look_at], "radius": float(radius), "fov_deg": ccfg["fov_deg"],
+                   "azimuth_deg": ccfg["azimuth_deg"], "elevation_deg": ccfg["elevation_deg"],
+                   "azimuth_per_frame_deg": ccfg["azimuth_per_frame_deg"], "width": width, "height": height})
+    log.info("orbit camera: look_at %s, radius %.4g, elevation %.1f deg, azimuth %.1f deg (+%.3g/frame), %dx%d",
+             [round(float(v), 4) for v in look_at], radius, ccfg["elevation_deg"], ccfg["azimuth_deg"],
+             ccfg["azimuth_per_frame_deg"], width, height)
+    return cams, record
+
+
+def check_camera(frame: int, means: torch.Tensor, cam: C.Camera, near: float, clipped: list) -> None:
+    """Raise on a camera inside the object or with everything behind it; note clipped frames."""
+    v = C.check_view(means, cam, near)
+    where = f"camera at {np.round(cam.position, 4).tolist()}"
+    if v.n and v.frac_behind >= 1.0:
+        raise RenderError(f"frame {frame}: every gaussian is behind the near plane ({near}) of the {where}; "
+                          "the camera looks away from the object (check camera.look_at / cameras.json)")
+    if v.inside_box and v.frac_behind > CLIP_WARN_FRACTION:
+        raise RenderError(f"frame {frame}: the {where} is inside the object ({100 * v.frac_behind:.0f}% of the "
+                          f"gaussians lie behind its near plane); increase camera.radius or move the camera")
+    if v.frac_behind > CLIP_WARN_FRACTION:
+        clipped.append((frame, round(v.frac_behind, 4)))
+
+
+def cpu_threads(requested: int | None, log: logging.Logger) -> int:
+    """Threads for the CPU renderer: ``requested``, else the cores that are idle right now.
+
+    Parallel loops stall at their barriers when other processes keep the cores busy (on a
+    loaded 2-core machine two threads ran 2-10x slower than one), so ``null`` measures the
+    idle CPU over 0.25 s and uses that many cores (at least one).
+    """
+    import os
+
+    import psutil
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if requested:
+        log.info("CPU renderer: %d threads (render.threads)", int(requested))
+        return int(requested)
+    busy = psutil.cpu_percent(interval=0.25) / 100.0
+    idle = (psutil.cpu_count() or cores) * (1.0 - busy)
+    n = max(1, min(cores, int(idle + 0.5)))
+    log.info("CPU renderer: %d threads (%d cores, %.1f idle now)", n, cores, idle)
+    return n
+
+
+# ---------------------------------------------------------------------------- stage
+def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
+    """Render the simulated frames into a video, a contact sheet and a report."""
+    t_start = time.perf_counter()
+    rcfg = cfg["render"]
+    ccfg = camera_config(cfg.get("scene") or {})
+    settings = settings_from_config(rcfg)
+    backend, why = resolve_backend(rcfg["backend"], cfg.get("device", "auto"))
+    log.info("backend %s (%s)", backend, why)
+    if backend == "cpu":
+        threads = cpu_threads(rcfg.get("threads"), log)
+        if rcfg["cpu_compositor"] == "taichi":
+            from .ti_composite import ensure_taichi
+
+            # the per-frame tensor work is small; one torch thread avoids stalls at OpenMP
+            # barriers, the Taichi kernel (most of the time) gets the threads
+            torch.set_num_threads(1)
+            ensure_taichi(threads)
+        else:
+            torch.set_num_threads(threads)
+    renderer = Renderer(backend, settings)
+    dev = renderer.device
+
+    smap = SourceMap.from_transform(load_transform(inputs["transform"]))
+    scene = load_gaussians(inputs["scene"], log)
+    frames = FinalFrames(inputs["frames"], scene.n)
+    try:
+        return _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, frames, dev, log, t_start)
+    finally:
+        frames.close()
+
+
+def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, frames, dev, log, t_start) -> dict:
+    rest = rest_gaussians(scene, smap, dev)
+    index = torch.from_numpy(frames.index).to(dev)
+    static_rows = np.setdiff1d(np.arange(scene.n), frames.index)
+    if static_rows.size:
+        log.info("%d of %d gaussians are not in final.h5 and are drawn at rest", static_rows.size, scene.n)
+    sel = list(range(0, frames.n_frames, int(rcfg["every_nth"])))
+    degree = renderer.degree(rest)
+    log.info("%d gaussians, %d simulated, %d of %d frames to render, SH degree %d", scene.n, frames.nv, len(sel),
+             frames.n_frames, degree)
+
+    cams, cam_record = build_cameras(
+        ccfg, rcfg, sel, lambda: motion_bounds(frames, sel, smap, rest.means, static_rows),
+        inputs.get("cameras"), log)
+    width, height = cams[0].width, cams[0].height
+    if width % 2 or height % 2:
+        log.info("image %dx%d is padded to even size for H.264 (yuv420p)", width, height)
+
+    sheet_pos = set(sheet_indices(len(sel), rcfg["contact_sheet"]["frames"]))
+    sheet_imgs, sheet_labels = [], []
+    coverage, clipped, hidden = [], [], {}
+    frame_dir = None
+    if rcfg["png_frames"]:
+        frame_dir = FrameDir(outputs.get("frames") or Path(outputs["video"]).parent / "frames")
+    batch = int(rcfg["batch"]) if backend == "gsplat" else 1
+    t_render = 0.0
+    next_log = 0.1
+    try:
+        with VideoWriter(outputs["video"], width, height, rcfg["fps"], rcfg["crf"]) as vw:
+            for b0 in range(0, len(sel), batch):
+                ids = sel[b0:b0 + batch]
+                gs = []
+                for t in ids:
+                    x, F = frames.x(t), frames.F(t)
+                    bad = check_frame(t, x, F, rcfg["on_nonfinite"])
+                    if bad is not None:
+                        hidden[t] = int(bad.sum())
+                        log.warning("frame %d: %d particles with NaN/inf are hidden", t, hidden[t])
+                    g = deform(rest, index, torch.from_numpy(x), torch.from_numpy(F), smap, degree > 0, bad)
+                    obj = g.means[index] if bad is None else g.means[index[~bad.to(dev)]]  # the simulated object
+                    check_camera(t, obj, cams[b0 + len(gs)], renderer.settings.near, clipped)
+                    gs.append(g)
+                t0 = time.perf_counter()
+                imgs, alphas = renderer.render_frames(gs, cams[b0:b0 + len(ids)])
+                t_render += time.perf_counter() - t0
+                for k, t in enumerate(ids):
+                    pos = b0 + k
+                    coverage.append(float((alphas[k] > COVERED_ALPHA).mean()))
+                    vw.append(imgs[k])
+                    if frame_dir is not None:
+                        frame_dir.add(t, imgs[k])
+                    if pos in sheet_pos:
+                        sheet_imgs.append(imgs[k])
+                        sheet_labels.append(f"frame {t}  t={frames.time[t]:.2f}s")
+                done = b0 + len(ids)
+                if done / len(sel) >= next_log or done == len(sel):
+                    log.info("rendered %d/%d frames (%.1f frames/s rendering)", done, len(sel), done / max(t_render, 1e-9))
+                    next_log = math.floor(done / len(sel) * 10 + 1) / 10
+            empty = [sel[i] for i, c in enumerate(coverage) if c == 0.0]
+            if len(empty) == len(sel):
+                raise RenderError(f"no rendered frame shows anything (no pixel reaches alpha {COVERED_ALPHA}); "
+                                  f"the object is outside the view of the {cam_record['mode']} camera")
+        if frame_dir is not None:
+            frame_dir.commit()
+    except BaseException:
+        if frame_dir is not None:
+            frame_dir.discard()
+        raise
+    if empty:
+        log.warning("%d frames show nothing (object out of view): %s", len(empty), _ranges(empty))
+    if clipped:
+        log.warning("%d frames have gaussians behind the near plane (clipped), e.g. frame %d (%.0f%%)",
+                    len(clipped), clipped[0][0], 100 * clipped[0][1])
+
+    sheet = contact_sheet(sheet_imgs, sheet_labels, rcfg["contact_sheet"]["columns"], rcfg["contact_sheet"]["tile_width"])
+    write_png(outputs["contact_sheet"], sheet)
+    seconds = time.perf_counter() - t_start
+    report = {
+        "backend": backend, "backend_reason": why, "device": str(dev),
+        "n_gaussians": scene.n, "n_simulated": frames.nv, "n_static": int(static_rows.size),
+        "frames_rendered": len(sel), "frames_total": frames.n_frames, "every_nth": int(rcfg["every_nth"]),
+        "width": width, "height": height, "fps": rcfg["fps"], "sh_degree": degree,
+        "camera": cam_record,
+        "coverage": {"min": min(coverage), "mean": float(np.mean(coverage)), "max": max(coverage)},
+        "empty_frames": empty, "clipped_frames": clipped, "hidden_nonfinite": hidden,
+        "render_seconds": round(t_render, 3), "render_frames_per_second": round(len(sel) / max(t_render, 1e-9), 2),
+        "seconds": round(seconds, 3),
+        "outputs": {k: str(v) for k, v in outputs.items()},
+        "png_frames": str(frame_dir.path) if frame_dir is not None else None,
+    }
+    write_json(outputs["report"], report)
+    log.info("wrote %s (%d frames, %dx%d, %.3g fps), %s, %s in %.1f s (%.1f s rendering)", outputs["video"], len(sel),
+             width, height, rcfg["fps"], outputs["contact_sheet"], outputs["report"], seconds, t_render)
+    return {"frames": len(sel), "render_seconds": round(t_render, 3), "backend": backend}
+
+
+def _ranges(frames: list[int]) -> str:
+    """'0-4, 9, 12-13' for [0, 1, 2, 3, 4, 9, 12, 13]."""
+    out, start, prev = [], None, None
+    for f in frames + [None]:
+        if start is None:
+            start = prev = f
+        elif f is not None and f == prev + 1:
+            prev = f
+        else:
+            out.append(f"{start}" if start == prev else f"{start}-{prev}")
+            start = prev = f
+    return ", ".join(out)

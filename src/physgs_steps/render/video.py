@@ -1,0 +1,179 @@
+"""Video (H.264 mp4), PNG frames and a contact sheet, all written atomically.
+
+The mp4 is written through imageio-ffmpeg's bundled ffmpeg: libx264, yuv420p (plays
+everywhere), constant quality ``-crf``. yuv420p needs even image sizes: an odd width or
+height is padded by repeating the last column/row (and logged by the caller).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import RenderError
+from ..runtime import atomic_path
+
+
+def even_size(width: int, height: int) -> tuple[int, int]:
+    """The video size for an image size (each side rounded up to even)."""
+    return width + (width % 2), height + (height % 2)
+
+
+def pad_even(img: np.ndarray) -> np.ndarray:
+    """[H, W, 3] uint8 -> the same image padded by edge repetition to even H and W."""
+    h, w = img.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:
+        return img
+    return np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+
+
+class VideoWriter:
+    """Stream frames into an H.264 mp4; the file appears only when :meth:`close` succeeds.
+
+    Use as a context manager; an exception inside the block leaves no file behind.
+    """
+
+    def __init__(self, path, width: int, height: int, fps: float, crf: int = 18):
+        import imageio_ffmpeg
+
+        if width < 1 or height < 1:
+            raise RenderError(f"{path}: cannot write a {width}x{height} video")
+        self.path = Path(path)
+        self.size = even_size(width, height)
+        self._atomic = atomic_path(self.path)
+        self._tmp = self._atomic.__enter__()
+        self.n_frames = 0
+        self._gen = imageio_ffmpeg.write_frames(
+            str(self._tmp), self.size, pix_fmt_in="rgb24", pix_fmt_out="yuv420p", fps=float(fps),
+            codec="libx264", quality=None, macro_block_size=2, ffmpeg_log_level="error",
+            output_params=["-crf", str(int(crf)), "-preset", "medium", "-movflags", "+faststart"])
+        self._gen.send(None)
+
+    def append(self, img: np.ndarray) -> None:
+        """Add one [H, W, 3] uint8 frame (the size given at construction, before even padding)."""
+        img = pad_even(np.ascontiguousarray(img, dtype=np.uint8))
+        if (img.shape[1], img.shape[0]) != self.size:
+            raise RenderError(f"{self.path}: frame of size {img.shape[1]}x{img.shape[0]}, video is {self.size[0]}x{self.size[1]}")
+        self._gen.send(img)
+        self.n_frames += 1
+
+    def close(self) -> None:
+        """Finish encoding and move the file into place."""
+        if self.n_frames == 0:
+            self.abort()
+            raise RenderError(f"{self.path}: no frames were rendered")
+        self._gen.close()
+        self._atomic.__exit__(None, None, None)
+
+    def abort(self) -> None:
+        """Stop encoding and delete the partial file."""
+        try:
+            self._gen.close()
+        except Exception:  # ffmpeg may already be gone; the partial file is removed below
+            pass
+        err = RenderError(f"{self.path}: video writing aborted")
+        try:
+            self._atomic.__exit__(RenderError, err, None)
+        except RenderError:
+            pass
+
+    def __enter__(self) -> "VideoWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+        return False
+
+
+def read_video(path) -> np.ndarray:
+    """[T, H, W, 3] uint8 frames of a video file (for checks and tests)."""
+    import imageio_ffmpeg
+
+    gen = imageio_ffmpeg.read_frames(str(path))
+    meta = next(gen)
+    w, h = meta["size"]
+    frames = [np.frombuffer(buf, dtype=np.uint8).reshape(h, w, 3) for buf in gen]
+    return np.stack(frames) if frames else np.zeros((0, h, w, 3), np.uint8)
+
+
+def write_png(path, img: np.ndarray) -> None:
+    """Write one [H, W, 3] uint8 image as PNG (atomically)."""
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8)).save(tmp, format="PNG")
+
+
+class FrameDir:
+    """PNG frames ``frame_00000.png``... written into a hidden folder and moved into place at the end."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.tmp = self.path.with_name(f".{self.path.name}.part")
+        if self.tmp.exists():
+            shutil.rmtree(self.tmp)
+        self.tmp.mkdir(parents=True)
+        self.n = 0
+
+    def add(self, frame: int, img: np.ndarray) -> None:
+        from PIL import Image
+
+        Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8)).save(self.tmp / f"frame_{frame:05d}.png", format="PNG")
+        self.n += 1
+
+    def commit(self) -> None:
+        if self.path.exists():
+            shutil.rmtree(self.path)
+        os.replace(self.tmp, self.path)
+
+    def discard(self) -> None:
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def sheet_indices(n_frames: int, n_tiles: int) -> list[int]:
+    """Positions (0..n_frames-1) of the frames a contact sheet shows: evenly spaced, first and last included."""
+    if n_frames <= 0:
+        return []
+    k = min(n_tiles, n_frames)
+    return sorted({int(round(i * (n_frames - 1) / max(k - 1, 1))) for i in range(k)})
+
+
+def contact_sheet(images: list[np.ndarray], labels: list[str], columns: int, tile_width: int,
+                  background=(255, 255, 255)) -> np.ndarray:
+    """A grid of downscaled frames with a caption under each.
+
+    Args:
+        images: list of [H, W, 3] uint8 frames (one size).
+        labels: one caption per image.
+        columns: images per row.
+        tile_width: width of each thumbnail in pixels (height keeps the aspect ratio).
+    Returns:
+        [H_sheet, W_sheet, 3] uint8.
+    """
+    from PIL import Image, ImageDraw, ImageFont
+
+    if not images:
+        raise RenderError("contact sheet: no frames")
+    h, w = images[0].shape[:2]
+    tw = int(tile_width)
+    th = max(1, int(round(h * tw / w)))
+    font = ImageFont.load_default(size=max(10, tw // 16))
+    cap = int(font.size * 1.6)
+    gap = 4
+    cols = max(1, min(columns, len(images)))
+    rows = (len(images) + cols - 1) // cols
+    sheet = Image.new("RGB", (cols * (tw + gap) + gap, rows * (th + cap + gap) + gap), tuple(background))
+    draw = ImageDraw.Draw(sheet)
+    for i, (img, label) in enumerate(zip(images, labels)):
+        r, c = divmod(i, cols)
+        x0, y0 = gap + c * (tw + gap), gap + r * (th + cap + gap)
+        thumb = Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8)).resize((tw, th), Image.LANCZOS)
+        sheet.paste(thumb, (x0, y0))
+        draw.rectangle([x0, y0, x0 + tw - 1, y0 + th - 1], outline=(128, 128, 128))
+        draw.text((x0 + 2, y0 + th + 2), label, fill=(0, 0, 0), font=font)
+    return np.asarray(sheet)
