@@ -67,7 +67,8 @@ def render_frames(frames: list[Gaussians], cameras: list[Camera], background, sh
     with torch.no_grad():
         rgb, alpha, _ = rasterization(means, None, None, opac, colors, viewmats, Ks, w, h,
                                       near_plane=near, far_plane=far, eps2d=eps2d, sh_degree=None,
-                                      backgrounds=bg, rasterize_mode="classic", covars=covars)
+                                      backgrounds=bg, rasterize_mode="classic", covars=covars,
+                                      packed=False)  # gsplat 1.5 rejects backgrounds when packed
     return _to_uint8(rgb[:, 0]).cpu(), alpha[:, 0, ..., 0].float().cpu()
 
 
@@ -91,5 +92,6 @@ def render_views(g: Gaussians, cameras: list[Camera], background, sh_degree: int
     with torch.no_grad():
         rgb, alpha, _ = rasterization(g.means, None, None, g.opacities, colors, viewmats, Ks, w, h,
                                       near_plane=near, far_plane=far, eps2d=eps2d, sh_degree=None,
-                                      backgrounds=bg, rasterize_mode="classic", covars=g.covars)
+                                      backgrounds=bg, rasterize_mode="classic", covars=g.covars,
+                                      packed=False)  # gsplat 1.5 rejects backgrounds when packed
     return _to_uint8(rgb).cpu(), alpha[..., 0].float().cpu()
