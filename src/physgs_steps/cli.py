@@ -86,14 +86,6 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
     raise PhysGSError(f"unknown stage '{name}'")
 
 
-def _ordered_jobs(plan: P.Plan) -> list[tuple[str, str | None]]:
-    jobs = [("prepare", None), ("cluster", None), ("fill", None), ("pinned_params" if plan.pinned else "vlm_params", None)]
-    for i, step in enumerate(plan.steps[:-1]):
-        jobs += [("forward_sim", step), ("bgdo_update", plan.steps[i + 1])]
-    jobs += [("final_sim", None), ("render", None), ("metrics", None)]
-    return jobs
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="physgs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default=None, help="global config file (default config/config.yaml)")
@@ -118,7 +110,7 @@ def main(argv=None) -> int:
                               "paths": {k: plan.path(k) for k in ("scene", "labels", "particles", "params0", "final", "video")},
                               "cfgs": plan.cfgs}, indent=2, default=str))
             return 0
-        jobs = [(args.stage, args.step)] if args.cmd == "stage" else _ordered_jobs(plan)
+        jobs = [(args.stage, args.step)] if args.cmd == "stage" else plan.jobs()
         summary = []
         for name, step in jobs:
             ins, outs, scfg = stage_io(plan, name, step)

@@ -169,6 +169,12 @@ def effective_section(cfg: dict, scene_cfg: dict, section: str, ablation: str | 
     return validate(merged, load_schema(f"{section}.schema.yaml"), src, section)
 
 
+def resolve_path(path: str) -> Path:
+    """A path from a config file: absolute, or relative to the repository root."""
+    p = Path(path)
+    return p if p.is_absolute() else (project_root() / p).resolve()
+
+
 def resolve_source(scene_cfg: dict) -> tuple[str, Path | None]:
     """('builtin', None) for ``builtin:<name>``, else ('file', absolute path)."""
     src = scene_cfg["source"]

@@ -85,6 +85,31 @@ class Plan:
         raise KeyError(kind)
 
 
+    def jobs(self) -> list[tuple[str, str | None]]:
+        """The (rule, step) jobs that produce this target's video, in execution order."""
+        jobs = [("prepare", None), ("cluster", None), ("fill", None),
+                ("pinned_params" if self.pinned else "vlm_params", None)]
+        for i, step in enumerate(self.steps[:-1]):
+            jobs += [("forward_sim", step), ("bgdo_update", self.steps[i + 1])]
+        return jobs + [("final_sim", self.steps[-1]), ("render", None), ("metrics", None)]
+
+    def benchmark_path(self, rule: str, step: str | None = None) -> str:
+        """Where Snakemake's ``benchmark:`` file of a job of this plan lies (see workflow/rules)."""
+        s, i = f"{RESULTS}/{self.scene}/benchmarks", self.ids
+        names = {
+            "prepare": f"{s}/prepare.tsv",
+            "cluster": f"{s}/cluster-{i['cluster']}.tsv",
+            "fill": f"{s}/fill-{i['fill']}.tsv",
+            "vlm_params": f"{s}/vlm_params-{i['params']}.tsv",
+            "pinned_params": f"{s}/pinned_params-{i['params']}.tsv",
+            "render": f"{RESULTS}/{self.target}/benchmarks/render.tsv",
+            "metrics": f"{RESULTS}/{self.target}/benchmarks/metrics.tsv",
+        }
+        if rule in names:
+            return names[rule]
+        return f"{s}/{rule}-{i['sim']}-{step}.tsv"
+
+
 def make_plan(cfg: dict, scene: str, ablation: str | None = None) -> Plan:
     """Compute the stage configs and artifact ids of one target."""
     sc = C.load_scene(cfg, scene)

@@ -1,3 +1,9 @@
+def report_jobs(w):
+    plan = REG.plan(w.target)
+    return [{"rule": r, "step": s, "benchmark": plan.benchmark_path(r, s)} for r, s in plan.jobs()]
+
+
+# Time and peak memory of every stage that made a target (from the benchmark: files).
 rule stage_report:
     input:
         video="results/{target}/video.mp4",
@@ -5,8 +11,7 @@ rule stage_report:
     output:
         table="results/{target}/stage_report.tsv",
     params:
-        cfg=lambda w: {"plan": REG.plan(w.target).__dict__ | {"paths": {
-            k: REG.plan(w.target).path(k) for k in ("scene", "labels", "particles", "params0", "final", "video")}}},
+        cfg=lambda w: {"jobs": report_jobs(w)},
     log:
         "results/{target}/logs/stage_report.log",
     benchmark:

@@ -1,0 +1,202 @@
+"""Benchmark: particle-substeps per second of physgs' MLS-MPM solver beside a textbook
+single-material MLS-MPM kernel (mpm88/mpm3d structure: fixed-corotated stress from ti.svd in
+P2G, float atomics, gravity and slip walls), on the same particles in the same process.
+
+    python benchmarks/bench_mpm.py                      # ti.cpu, and ti.cuda when available
+    python benchmarks/bench_mpm.py --arch cuda --sizes 1000000
+    python benchmarks/bench_mpm.py --arch cpu --sizes 30000 --seconds 5
+
+Particles fill a box in random order (as gaussians come from a .ply); the textbook kernel gets
+them in that order and, for reference, sorted by cell as physgs stores them.  The figure is
+the ratio physgs / textbook (target: >= 1).  Both use the jelly material (E 1e5 Pa, nu 0.3,
+1000 kg/m^3) and the same dt.  Each arch runs in its own process (Taichi has one arch per
+process).
+"""
+import argparse
+import functools
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+ROWS = "ROWS "
+GRID_FOR = {30_000: 32, 300_000: 64, 1_000_000: 96}
+
+
+@functools.lru_cache(maxsize=None)
+def _textbook():
+    """The textbook kernel (defined here so that it compiles only when benchmarked)."""
+    import taichi as ti
+
+    vec3 = ti.types.vector(3, ti.f32)
+    mat3 = ti.types.matrix(3, 3, ti.f32)
+
+    @ti.kernel
+    def substep(x: ti.types.ndarray(dtype=vec3, ndim=1), v: ti.types.ndarray(dtype=vec3, ndim=1),
+                C: ti.types.ndarray(dtype=mat3, ndim=1), F: ti.types.ndarray(dtype=mat3, ndim=1),
+                grid_v: ti.types.ndarray(dtype=vec3, ndim=3), grid_m: ti.types.ndarray(dtype=ti.f32, ndim=3),
+                dt: ti.f32, dx: ti.f32, p_vol: ti.f32, p_mass: ti.f32, mu: ti.f32, lam: ti.f32):
+        inv_dx = 1.0 / dx
+        G = grid_m.shape[0]
+        for I in ti.grouped(grid_m):
+            grid_v[I] = ti.Vector.zero(ti.f32, 3)
+            grid_m[I] = 0.0
+        for p in x:
+            base = ti.cast(x[p] * inv_dx - 0.5, ti.i32)
+            fx = x[p] * inv_dx - ti.cast(base, ti.f32)
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+            F[p] = (ti.Matrix.identity(ti.f32, 3) + dt * C[p]) @ F[p]
+            U, sig, V = ti.svd(F[p])
+            J = sig[0, 0] * sig[1, 1] * sig[2, 2]
+            stress = 2.0 * mu * (F[p] - U @ V.transpose()) @ F[p].transpose() + \
+                ti.Matrix.identity(ti.f32, 3) * lam * J * (J - 1.0)
+            affine = (-dt * p_vol * 4.0 * inv_dx * inv_dx) * stress + p_mass * C[p]
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                offset = ti.Vector([i, j, k])
+                dpos = (ti.cast(offset, ti.f32) - fx) * dx
+                weight = w[i][0] * w[j][1] * w[k][2]
+                grid_v[base + offset] += weight * (p_mass * v[p] + affine @ dpos)
+                grid_m[base + offset] += weight * p_mass
+        for I in ti.grouped(grid_m):
+            if grid_m[I] > 0:
+                gv = grid_v[I] / grid_m[I]
+                gv[2] -= dt * 9.8
+                for d in ti.static(range(3)):
+                    if I[d] < 3 and gv[d] < 0:
+                        gv[d] = 0.0
+                    if I[d] > G - 3 and gv[d] > 0:
+                        gv[d] = 0.0
+                grid_v[I] = gv
+        for p in x:
+            base = ti.cast(x[p] * inv_dx - 0.5, ti.i32)
+            fx = x[p] * inv_dx - ti.cast(base, ti.f32)
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+            new_v = ti.Vector.zero(ti.f32, 3)
+            new_C = ti.Matrix.zero(ti.f32, 3, 3)
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                dpos = (ti.Vector([i, j, k]).cast(ti.f32) - fx) * dx
+                g_v = grid_v[base + ti.Vector([i, j, k])]
+                weight = w[i][0] * w[j][1] * w[k][2]
+                new_v += weight * g_v
+                new_C += 4.0 * inv_dx * inv_dx * weight * g_v.outer_product(dpos)
+            v[p] = new_v
+            x[p] += dt * new_v
+            C[p] = new_C
+
+    class Textbook:
+        def __init__(self, x_m: np.ndarray, G: int, L: float, mu: float, lam: float, p_vol: float, p_mass: float):
+            P = len(x_m)
+            self.x = ti.ndarray(vec3, P)
+            self.x.from_numpy(x_m.astype(np.float32))
+            self.v, self.C, self.F = ti.ndarray(vec3, P), ti.ndarray(mat3, P), ti.ndarray(mat3, P)
+            self.v.from_numpy(np.zeros((P, 3), np.float32))
+            self.C.from_numpy(np.zeros((P, 3, 3), np.float32))
+            self.F.from_numpy(np.tile(np.eye(3, dtype=np.float32), (P, 1, 1)))
+            self.gv, self.gm = ti.ndarray(vec3, (G, G, G)), ti.ndarray(ti.f32, (G, G, G))
+            self.args = (L / G, p_vol, p_mass, mu, lam)
+
+        def substep(self, dt: float) -> None:
+            substep(self.x, self.v, self.C, self.F, self.gv, self.gm, dt, *self.args)
+
+    return Textbook
+
+
+def _particles(P: int, seed: int = 0) -> np.ndarray:
+    """[P, 3] random points in a box of the unit domain (random order, like gaussians)."""
+    rng = np.random.default_rng(seed)
+    return (0.3 + 0.4 * rng.random((P, 3))).astype(np.float64)
+
+
+def _rate(step, P: int, seconds: float):
+    import taichi as ti
+
+    step()  # compile / warm up
+    ti.sync()
+    n, t0 = 0, time.perf_counter()
+    while n < 3 or time.perf_counter() - t0 < seconds:
+        step()
+        n += 1
+        if n % 5 == 0:
+            ti.sync()
+    ti.sync()
+    return P * n / (time.perf_counter() - t0), n
+
+
+def bench_arch(arch: str, sizes: list, seconds: float) -> list:
+    from physgs_steps.mpm import Dynamics, Material, MPMSolver
+
+    m = Material("fixed_corotated", "identity", E=1.0e5, nu=0.3, density=1000.0, name="jelly")
+    out = []
+    for P in sizes:
+        G = GRID_FOR.get(P, 64)
+        x = _particles(P)
+        vol = np.full(P, 0.4 ** 3 / P)
+        dt = 0.5 * (1.0 / G) / m.wave_speed
+        s = MPMSolver([m], n_grid=G, dynamics=Dynamics.free(), backend=arch)
+        s.set_particles(x, vol, np.zeros(P, int))
+        Textbook = _textbook()
+        p_vol = 0.4 ** 3 / P
+        tb = Textbook(x, G, 1.0, m.mu, m.lam, p_vol, p_vol * m.density)
+        tbs = Textbook(x[s._perm], G, 1.0, m.mu, m.lam, p_vol, p_vol * m.density)
+        r_ours, n_ours = _rate(lambda: s.substep(dt), P, seconds)
+        r_tb, _ = _rate(lambda: tb.substep(dt), P, seconds)
+        r_tbs, _ = _rate(lambda: tbs.substep(dt), P, seconds)
+        row = {"arch": s.arch, "particles": P, "n_grid": G, "physgs": r_ours, "textbook": r_tb,
+               "textbook_sorted": r_tbs, "ratio": r_ours / r_tb, "ratio_vs_sorted": r_ours / r_tbs,
+               "substeps_measured": n_ours, "threads": os.cpu_count()}
+        print(f"{s.arch:5s} P={P:>8d} grid {G}^3: physgs {r_ours:.3g}  textbook {r_tb:.3g} "
+              f"(sorted input {r_tbs:.3g}) particle-substeps/s  ratio {row['ratio']:.2f} "
+              f"({row['ratio_vs_sorted']:.2f} vs sorted)", flush=True)
+        out.append(row)
+    return out
+
+
+def _cuda_available() -> bool:
+    try:
+        import torch
+
+        return bool(torch.cuda.is_available())
+    except Exception:  # torch missing: ask Taichi in a subprocess instead
+        code = "import taichi as ti; ti.init(arch=ti.cuda); from taichi.lang import impl; print(impl.current_cfg().arch == ti.cuda)"
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        return r.stdout.strip().endswith("True")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--arch", choices=["cpu", "cuda", "all"], default="all")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[30_000, 300_000, 1_000_000])
+    ap.add_argument("--seconds", type=float, default=3.0, help="measuring time per kernel and size")
+    ap.add_argument("--json", help="also write the rows to this JSON file")
+    ap.add_argument("--emit-rows", action="store_true", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.arch == "all":
+        rows = []
+        for arch in ["cpu"] + (["cuda"] if _cuda_available() else []):
+            cmd = [sys.executable, __file__, "--arch", arch, "--seconds", str(a.seconds), "--sizes",
+                   *map(str, a.sizes), "--emit-rows"]
+            r = subprocess.run(cmd, capture_output=True, text=True)
+            for line in r.stdout.splitlines():
+                if line.startswith(ROWS):
+                    rows += json.loads(line[len(ROWS):])
+                elif line.strip():
+                    print(line, flush=True)
+            if r.returncode != 0:
+                print(r.stderr[-3000:], file=sys.stderr)
+        if "cuda" not in {r["arch"] for r in rows}:
+            print("ti.cuda: not available on this machine")
+    else:
+        rows = bench_arch(a.arch, a.sizes, a.seconds)
+        if a.emit_rows:
+            print(ROWS + json.dumps(rows))
+            return
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(rows, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()

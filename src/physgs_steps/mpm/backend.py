@@ -1,0 +1,76 @@
+"""Taichi start-up: one runtime per process, offline cache in the project.
+
+``ensure_taichi("cpu" | "cuda" | "auto")`` initialises Taichi once (f32, offline cache in
+``runtime.cache_dir("taichi")`` so a stage run twice does not recompile) and returns the arch
+actually used.  ``auto`` takes CUDA when Taichi finds a CUDA device, else the CPU.  Asking
+for another arch later re-initialises Taichi, which invalidates arrays of earlier solvers.
+If some other code re-initialises Taichi, the next call notices and starts again.
+"""
+from __future__ import annotations
+
+import logging
+import os
+
+import taichi as ti
+
+from ..errors import ConfigError
+from ..runtime import cache_dir
+
+_state: dict = {"arch": None, "prog": None}
+_log = logging.getLogger("physgs.mpm")
+
+
+def _current_prog():
+    from taichi.lang import impl
+
+    return impl.get_runtime().prog
+
+
+def _init(arch) -> str:
+    ti.init(arch=arch, default_fp=ti.f32, default_ip=ti.i32, offline_cache=True,
+            offline_cache_file_path=str(cache_dir("taichi")), log_level=ti.WARN,
+            cpu_max_num_threads=os.cpu_count() or 1)
+    from taichi.lang import impl
+
+    got = impl.current_cfg().arch
+    name = "cuda" if got == ti.cuda else "cpu"
+    _state.update(arch=name, prog=_current_prog())
+    from . import kernels
+
+    kernels.build.cache_clear()
+    kernels.build_constitutive.cache_clear()
+    return name
+
+
+def ensure_taichi(backend: str = "cpu") -> str:
+    """Initialise Taichi for ``backend`` (cpu | cuda | auto) if needed; return "cpu" or "cuda".
+
+    Raises:
+        ConfigError(sim.backend) when CUDA is requested but not available.
+    """
+    if backend not in ("cpu", "cuda", "auto"):
+        raise ConfigError("sim.backend", f"must be cpu, cuda or auto, got {backend!r}")
+    alive = _state["prog"] is not None and _current_prog() is _state["prog"]
+    if alive and (backend == "auto" or backend == _state["arch"]):
+        return _state["arch"]
+    if backend == "cpu":
+        return _init(ti.cpu)
+    name = _init(ti.cuda) if _cuda_built() else _init(ti.cpu)
+    if backend == "cuda" and name != "cuda":
+        raise ConfigError("sim.backend", "is 'cuda' but Taichi found no usable CUDA device; use 'cpu' or 'auto'")
+    if backend == "auto":
+        _log.info("Taichi backend auto -> %s", name)
+    return name
+
+
+def _cuda_built() -> bool:
+    try:
+        return bool(ti._lib.core.with_cuda())
+    except AttributeError:  # pragma: no cover - very old/new Taichi
+        return True
+
+
+def current_arch() -> str | None:
+    """The arch of the live runtime started here, or None."""
+    alive = _state["prog"] is not None and _current_prog() is _state["prog"]
+    return _state["arch"] if alive else None

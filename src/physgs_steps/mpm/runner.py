@@ -1,0 +1,147 @@
+"""The frame loop shared by forward_sim and final_sim.
+
+``run_frames`` steps a loaded :class:`MPMSolver` through ``n_frames`` frames (frame 0 is the
+initial state), plans the substeps of each frame (timestep.py), checks stability after each
+frame (stability.py) and calls ``on_frame(frame, time, dt_next)`` for every stable frame.  On a
+failure it stops; with ``keep_backup`` the solver is returned to the last stable frame's state
+(device copy taken after every stable frame).  It never raises for instability: the caller
+decides (forward_sim flags, final_sim raises).
+"""
+from __future__ import annotations
+
+import logging
+import time as _time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .solver import MPMSolver
+from .stability import Failure, Thresholds, check, explain, failure_info
+from .timestep import StepPlan, TimeStepper
+
+
+@dataclass
+class RunResult:
+    frames_done: int = 0                       # stable frames including frame 0
+    substeps: list = field(default_factory=list)  # per simulated frame (1..)
+    dts: list = field(default_factory=list)
+    cfl: list = field(default_factory=list)
+    over_cfl_frames: int = 0
+    failure: Failure | None = None
+    message: str | None = None
+    info: dict | None = None
+    last_stable_frame: int = 0
+    first_substep_seconds: float = 0.0        # includes kernel compilation / cache load
+    step_seconds: float = 0.0                 # substeps and checks, without the first substep
+    callback_seconds: float = 0.0
+    max_speed: float = 0.0
+    j_range: list = field(default_factory=lambda: [1.0, 1.0])
+
+    @property
+    def stable(self) -> bool:
+        return self.failure is None
+
+    def summary(self, n_particles: int) -> dict:
+        total = int(sum(self.substeps))
+        rate = n_particles * max(total - 1, 0) / self.step_seconds if self.step_seconds > 0 else None
+        return {
+            "stable": self.stable,
+            "frames_done": self.frames_done,
+            "last_stable_frame": self.last_stable_frame,
+            "substeps_per_frame": [int(n) for n in self.substeps],
+            "substeps_total": total,
+            "dt_per_frame": [float(d) for d in self.dts],
+            "max_cfl": float(max(self.cfl)) if self.cfl else None,
+            "cfl_capped_frames": self.over_cfl_frames,
+            "first_substep_seconds": round(self.first_substep_seconds, 3),
+            "simulate_seconds": round(self.step_seconds, 3),
+            "particle_substeps_per_second": rate,
+            "max_speed": self.max_speed,
+            "j_range": self.j_range,
+            "failure": self.message,
+            "failure_info": self.info,
+        }
+
+
+def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thresholds,
+               on_frame: Callable[[int, float, float], None], log: logging.Logger, *,
+               keep_backup: bool = False, stage: str = "simulation") -> RunResult:
+    """Simulate frames 1..n_frames-1 after reporting frame 0; see the module docstring."""
+    res = RunResult()
+    c_max = float(np.max(solver.wave_speeds()))
+    frame_dt = stepper.frame_dt
+    stats = solver.stats()
+    fail = check(stats, th, 0, 0.0)
+    plan = stepper.plan(solver.dx, c_max, float(np.max(stats["speed_max"])))
+    if fail is not None:
+        return _fail(res, fail, solver, stepper, plan, th, stage, log)
+    _track(res, stats)
+    t_cb = _time.perf_counter()
+    on_frame(0, 0.0, plan.dt)
+    res.callback_seconds += _time.perf_counter() - t_cb
+    if keep_backup:
+        solver.save_backup()
+    res.frames_done = 1
+    every = max(1, (n_frames - 1) // 10)
+    t_start = _time.perf_counter()
+    for k in range(1, n_frames):
+        for s in range(plan.n):
+            if k == 1 and s == 0:
+                t0 = _time.perf_counter()
+                solver.substep(plan.dt)
+                _sync()
+                res.first_substep_seconds = _time.perf_counter() - t0
+                t_start += res.first_substep_seconds
+            else:
+                solver.substep(plan.dt)
+        solver.time = k * frame_dt
+        res.substeps.append(plan.n)
+        res.dts.append(plan.dt)
+        res.cfl.append(plan.cfl)
+        res.over_cfl_frames += int(plan.over_cfl)
+        stats = solver.stats()
+        fail = check(stats, th, k, solver.time)
+        if fail is not None:
+            res.step_seconds = _time.perf_counter() - t_start - res.callback_seconds
+            if keep_backup:
+                solver.restore_backup()
+            return _fail(res, fail, solver, stepper, plan, th, stage, log)
+        _track(res, stats)
+        v_max = float(np.max(stats["speed_max"]))
+        used = plan
+        plan = stepper.plan(solver.dx, c_max, v_max)
+        t_cb = _time.perf_counter()
+        on_frame(k, solver.time, plan.dt)
+        res.callback_seconds += _time.perf_counter() - t_cb
+        if keep_backup:
+            solver.save_backup()
+        res.frames_done = k + 1
+        res.last_stable_frame = k
+        if k % every == 0 or k == n_frames - 1:
+            log.info("frame %d/%d t=%.2fs: %d substeps (dt %.2e s, CFL %.2f%s), v_max %.2f m/s, J [%.3f, %.3f], %.1f s",
+                     k, n_frames - 1, solver.time, used.n, used.dt, used.cfl, ", capped" if used.over_cfl else "",
+                     v_max, float(np.min(stats["j_min"])), float(np.max(stats["j_max"])),
+                     _time.perf_counter() - t_start)
+    res.step_seconds = _time.perf_counter() - t_start - res.callback_seconds
+    return res
+
+
+def _fail(res: RunResult, fail: Failure, solver: MPMSolver, stepper: TimeStepper, plan: StepPlan, th: Thresholds,
+          stage: str, log: logging.Logger) -> RunResult:
+    res.failure = fail
+    res.message = explain(fail, solver.materials, stepper, plan, solver.dx, solver.n_grid, th, stage)
+    res.info = failure_info(fail, solver.materials, plan, solver.dx, stepper.cfl)
+    log.warning("%s", res.message)
+    return res
+
+
+def _track(res: RunResult, stats: dict) -> None:
+    res.max_speed = max(res.max_speed, float(np.max(stats["speed_max"])))
+    res.j_range = [min(res.j_range[0], float(np.min(stats["j_min"]))), max(res.j_range[1], float(np.max(stats["j_max"])))]
+
+
+def _sync() -> None:
+    import taichi as ti
+
+    ti.sync()

@@ -1,0 +1,341 @@
+"""The MLS-MPM solver: particle state, grid, one substep (docs/CONTRACTS.md "MPM step").
+
+Usage (arrays in DOMAIN UNITS, as stored in HDF5 and used by the torch pseudo-step)::
+
+    from physgs_steps.mpm import MPMSolver, Material, preset, Dynamics
+    s = MPMSolver([preset("jelly", name="bear")], n_grid=32, domain_size=1.0,
+                  dynamics=Dynamics.free(), backend="cpu")
+    s.set_particles(x, vol, material)        # x [P,3] in [0,1], vol [P] (domain units^3), material [P] int
+    s.set_state(x, v, C, F)                  # optional: any state (v in domain units/s)
+    s.substep(dt)                            # one step of dt seconds
+    st = s.get_state()                       # {"x", "v", "C", "F"} float32, rows in input order
+
+Inside, the solver works in SI units (x_phys = L x with L = ``domain_size`` metres,
+``dx = L / n_grid``, ``p_vol = vol L^3``, ``p_mass = density p_vol``); C and F are unit-free
+with respect to length.  Particles are stored sorted by grid cell (better cache and atomic
+locality); ``get_state``/``set_state`` use the caller's order.
+"""
+from __future__ import annotations
+
+import math
+import os
+from typing import Sequence
+
+import numpy as np
+import taichi as ti
+
+from ..errors import ConfigError, InputError
+from . import kernels as K
+from .backend import ensure_taichi
+from .dynamics import BoundDynamics, Dynamics
+from .materials import Material
+
+MAX_CHUNKS = 16  # CPU: at most this many private grids
+STAT_COLUMNS = ("nonfinite", "j_min", "j_max", "speed_max", "outside")
+
+
+class MPMSolver:
+    """Multi-material MLS-MPM on a dense ``n_grid^3`` grid over ``[0, domain_size]^3`` metres.
+
+    Args:
+        materials: one :class:`Material` per instance; particle ``material`` indices refer to it.
+        n_grid: grid nodes per axis (G).
+        domain_size: metres per domain unit (L).
+        dynamics: scene dynamics (default: gravity (0, 0, -9.8) and slip walls).
+        backend: cpu | cuda | auto (Taichi arch).
+        labels: instance label of each material (for ``instance: <label>`` references).
+        sort_particles: store particles sorted by cell (faster; results equal up to float
+            summation order).
+        grid_mode: how P2G accumulates: ``private`` (one grid per CPU thread's chunk of
+            particles, plain adds, reproducible), ``atomic`` (one grid, float atomics), or
+            ``auto`` (private on the CPU, atomic on CUDA).
+    """
+
+    def __init__(self, materials: Sequence[Material], *, n_grid: int = 32, domain_size: float = 1.0,
+                 dynamics: Dynamics | None = None, backend: str = "cpu", labels: Sequence[int] | None = None,
+                 sort_particles: bool = True, grid_mode: str = "auto"):
+        if not materials:
+            raise ConfigError("materials", "at least one material is needed")
+        if int(n_grid) < 8:
+            raise ConfigError("sim.n_grid", f"must be >= 8, got {n_grid}")
+        if not (domain_size > 0 and math.isfinite(domain_size)):
+            raise ConfigError("sim.domain_size", f"must be a positive number of metres, got {domain_size}")
+        self.materials = list(materials)
+        self.labels = list(labels) if labels is not None else list(range(len(self.materials)))
+        self.n_grid = int(n_grid)
+        self.L = float(domain_size)
+        self.dx = self.L / self.n_grid
+        self.inv_dx = 1.0 / self.dx
+        self.dynamics = dynamics if dynamics is not None else Dynamics.free()
+        self.arch = ensure_taichi(backend)
+        self.sort_particles = sort_particles
+        if grid_mode not in ("auto", "private", "atomic"):
+            raise ConfigError("grid_mode", f"must be auto, private or atomic, got {grid_mode!r}")
+        self.private_grid = grid_mode == "private" or (grid_mode == "auto" and self.arch == "cpu")
+        self.n_chunks = max(1, min(os.cpu_count() or 1, MAX_CHUNKS)) if self.private_grid else 1
+        self.combos = tuple(sorted({m.models for m in self.materials}))
+        self.time = 0.0
+        self.n_particles = 0
+        self.bound: BoundDynamics | None = None
+        self._k = None
+        self._kc = K.build_constitutive(self.combos)
+        self._upload_materials()
+
+    # ------------------------------------------------------------------ set-up
+    def set_particles(self, x: np.ndarray, vol: np.ndarray, material: np.ndarray,
+                      velocity: np.ndarray | None = None) -> None:
+        """Load particles at rest (F = I, C = 0) with their initial velocities.
+
+        Args:
+            x: [P, 3] positions in domain units (inside the grid's stencil range).
+            vol: [P] particle volumes in domain units^3 (> 0).
+            material: [P] int, index into ``materials``.
+            velocity: [P, 3] initial velocities in m/s; default: each material's ``velocity``
+                then the dynamics' ``initial_velocity`` overrides.
+        """
+        x = _as_array(x, np.float64, (None, 3), "x")
+        P = len(x)
+        vol = _as_array(vol, np.float64, (P,), "vol")
+        material = _as_array(material, np.int64, (P,), "material")
+        if P == 0:
+            raise InputError("particles", "no particles to simulate")
+        if material.min() < 0 or material.max() >= len(self.materials):
+            raise InputError("particles", f"material index out of range 0..{len(self.materials) - 1}")
+        if np.any(vol <= 0):
+            raise InputError("particles", "particle volumes must be > 0")
+        self._check_inside(x)
+        names = [m.name for m in self.materials]
+        if velocity is None:
+            base = np.array([m.velocity for m in self.materials], np.float64)
+            velocity = self.dynamics.initial_velocities(x, material, base, names, self.labels)
+        velocity = _as_array(velocity, np.float64, (P, 3), "velocity")
+        self.bound = self.dynamics.bind(x, material, names, self.labels, self.L)
+        self._perm = self._sort_order(x) if self.sort_particles else np.arange(P)
+        self.n_particles = P
+        self._allocate(P)
+        perm = self._perm
+        self._mat.from_numpy(material[perm].astype(np.int32))
+        self._act_bits.from_numpy(self.bound.act_bits[perm])
+        p_vol = vol[perm] * self.L ** 3
+        density = np.array([m.density for m in self.materials])[material[perm]]
+        self._p_vol.from_numpy(p_vol.astype(np.float32))
+        self._p_mass.from_numpy((p_vol * density).astype(np.float32))
+        self._dyn = _ndarray_from(self.bound.table, ti.f32)
+        spec = K.Spec(self.combos, *self.bound.spec(), self.private_grid)
+        self._k = K.build(spec)
+        eye = np.broadcast_to(np.eye(3), (P, 3, 3))
+        self.set_state(x, velocity / self.L, np.zeros((P, 3, 3)), eye)
+        self.time = 0.0
+
+    def set_materials(self, materials: Sequence[Material]) -> None:
+        """Replace material parameters (same models per index) without recompiling; recomputes
+        masses and stresses."""
+        if [m.models for m in materials] != [m.models for m in self.materials]:
+            raise ConfigError("materials", "set_materials keeps each index's elasticity/plasticity models")
+        old_rho = np.array([m.density for m in self.materials])
+        self.materials = list(materials)
+        self._upload_materials()
+        if self.n_particles:
+            mat = self._mat.to_numpy()
+            rho = np.array([m.density for m in self.materials])
+            self._p_mass.from_numpy((self._p_mass.to_numpy() * (rho / old_rho)[mat]).astype(np.float32))
+            self._update_stress()
+
+    def _upload_materials(self) -> None:
+        table = np.stack([m.table_row() for m in self.materials]).astype(np.float32)
+        self._mparams = _ndarray_from(table, ti.f32)
+        combo = np.array([self.combos.index(m.models) for m in self.materials], np.int32)
+        self._mcombo = _ndarray_from(combo, ti.i32)
+
+    def _allocate(self, P: int) -> None:
+        G = self.n_grid
+        self.x = ti.ndarray(K.vec3, P)
+        self.v = ti.ndarray(K.vec3, P)
+        self.C = ti.ndarray(K.mat3, P)
+        self.F = ti.ndarray(K.mat3, P)
+        self.tau = ti.ndarray(K.mat3, P)
+        self._p_vol = ti.ndarray(ti.f32, P)
+        self._p_mass = ti.ndarray(ti.f32, P)
+        self._mat = ti.ndarray(ti.i32, P)
+        self._act_bits = ti.ndarray(ti.i32, P)
+        T = self.n_chunks
+        self.grid_v = ti.ndarray(K.vec3, (T, G, G, G))
+        self.grid_m = ti.ndarray(ti.f32, (T, G, G, G))
+        self._err = ti.ndarray(ti.i32, 4)
+        self._err.from_numpy(np.zeros(4, np.int32))
+        self._stats = ti.ndarray(ti.f32, (len(self.materials), len(STAT_COLUMNS)))
+        self._backup = None
+
+    def _sort_order(self, x: np.ndarray) -> np.ndarray:
+        """[P] permutation sorting particles by grid cell (row-major in (x, y, z))."""
+        cell = np.clip(np.floor(x * self.n_grid).astype(np.int64), 0, self.n_grid - 1)
+        key = (cell[:, 0] * self.n_grid + cell[:, 1]) * self.n_grid + cell[:, 2]
+        return np.argsort(key, kind="stable")
+
+    def _check_inside(self, x: np.ndarray) -> None:
+        g = x * self.n_grid
+        out = np.any((g < 0.5) | (g >= self.n_grid - 1.5), axis=1)
+        if out.any():
+            lo, hi = 0.5 / self.n_grid, (self.n_grid - 1.5) / self.n_grid
+            raise InputError("particles", f"{int(out.sum())} particles lie outside the simulation domain "
+                                          f"[{lo:.4f}, {hi:.4f})^3 (domain units, n_grid {self.n_grid})")
+
+    # ------------------------------------------------------------------ state
+    def set_state(self, x: np.ndarray, v: np.ndarray, C: np.ndarray, F: np.ndarray) -> None:
+        """Set the state (domain units: x [P,3], v [P,3] in domain units/s, C [P,3,3] in 1/s,
+        F [P,3,3]; rows in the order given to set_particles) and recompute the stresses."""
+        self._require_particles()
+        P = self.n_particles
+        x = _as_array(x, np.float64, (P, 3), "x")
+        v = _as_array(v, np.float64, (P, 3), "v")
+        C = _as_array(C, np.float64, (P, 3, 3), "C")
+        F = _as_array(F, np.float64, (P, 3, 3), "F")
+        p = self._perm
+        self.x.from_numpy((x[p] * self.L).astype(np.float32))
+        self.v.from_numpy((v[p] * self.L).astype(np.float32))
+        self.C.from_numpy(C[p].astype(np.float32))
+        self.F.from_numpy(F[p].astype(np.float32))
+        self._update_stress()
+
+    def get_state(self) -> dict:
+        """{"x", "v", "C", "F"}: float32 arrays in domain units, rows in input order."""
+        self._require_particles()
+        inv = 1.0 / self.L
+        out = {}
+        for name, arr, scale in (("x", self.x, inv), ("v", self.v, inv), ("C", self.C, 1.0), ("F", self.F, 1.0)):
+            a = arr.to_numpy()
+            b = np.empty_like(a)
+            b[self._perm] = a * np.float32(scale) if scale != 1.0 else a
+            out[name] = b
+        return out
+
+    def get_stress(self) -> np.ndarray:
+        """[P, 3, 3] Kirchhoff stress (Pa) of the current F, rows in input order."""
+        a = self.tau.to_numpy()
+        b = np.empty_like(a)
+        b[self._perm] = a
+        return b
+
+    def _update_stress(self) -> None:
+        self._kc.stress(self.F, self._mat, self._mparams, self._mcombo, self.tau)
+
+    # ------------------------------------------------------------------ constitutive models alone
+    def kirchhoff(self, F: np.ndarray, material: np.ndarray) -> np.ndarray:
+        """Kirchhoff stress [N, 3, 3] (Pa) of deformation gradients ``F`` [N, 3, 3] under the
+        materials ``material`` [N] (indices into ``materials``); no particles needed."""
+        F, material = self._constitutive_args(F, material)
+        out = ti.ndarray(K.mat3, len(F))
+        self._kc.stress(_ndarray_from(F, K.mat3), _ndarray_from(material, ti.i32), self._mparams, self._mcombo, out)
+        return out.to_numpy()
+
+    def return_map(self, F_trial: np.ndarray, material: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The G2P constitutive update: (F, tau) [N, 3, 3] after the return map of ``F_trial``
+        [N, 3, 3] under ``material`` [N], tau being the stress of the returned F."""
+        F_trial, material = self._constitutive_args(F_trial, material)
+        F_out, tau = ti.ndarray(K.mat3, len(F_trial)), ti.ndarray(K.mat3, len(F_trial))
+        self._kc.update(_ndarray_from(F_trial, K.mat3), _ndarray_from(material, ti.i32), self._mparams,
+                        self._mcombo, F_out, tau)
+        return F_out.to_numpy(), tau.to_numpy()
+
+    def _constitutive_args(self, F, material):
+        F = _as_array(F, np.float32, (None, 3, 3), "F")
+        material = _as_array(material, np.int32, (len(F),), "material")
+        if len(F) == 0:
+            raise InputError("F", "empty")
+        if material.min() < 0 or material.max() >= len(self.materials):
+            raise InputError("material", f"index out of range 0..{len(self.materials) - 1}")
+        return F, material
+
+    def _require_particles(self) -> None:
+        if self._k is None:
+            raise RuntimeError("call set_particles() first")
+
+    # ------------------------------------------------------------------ stepping
+    def substep(self, dt: float) -> None:
+        """Advance by one substep of ``dt`` seconds (CONTRACTS.md step plus scene dynamics)."""
+        self._require_particles()
+        b = self.bound
+        damp = math.exp(-b.damping * dt) if b.damping > 0 else 1.0
+        self._k.substep(self.x, self.v, self.C, self.F, self.tau, self._p_vol, self._p_mass, self._mat,
+                        self._act_bits, self.grid_v, self.grid_m, self._mparams, self._mcombo, self._dyn,
+                        self._err, float(dt), float(self.time), float(self.dx),
+                        float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]), float(damp))
+        self.time += dt
+
+    def stats(self) -> dict:
+        """Per-material statistics of the current state: {column: [K] array} with columns
+        nonfinite (count), j_min, j_max, speed_max (m/s), outside (count) plus ``clamped``
+        (particles whose stencil left the grid since the last call)."""
+        self._require_particles()
+        init = np.zeros((len(self.materials), len(STAT_COLUMNS)), np.float32)
+        init[:, 1] = np.float32(3e38)
+        init[:, 2] = np.float32(-3e38)
+        self._stats.from_numpy(init)
+        K.frame_stats(self.x, self.v, self.F, self._mat, self._stats, float(self.dx), self.n_grid)
+        a = self._stats.to_numpy().astype(np.float64)
+        out = {c: a[:, i] for i, c in enumerate(STAT_COLUMNS)}
+        err = self._err.to_numpy()
+        out["clamped"] = int(err[0])
+        self._err.from_numpy(np.zeros(4, np.int32))
+        return out
+
+    # ------------------------------------------------------------------ backup / output
+    def save_backup(self) -> None:
+        """Keep a device copy of (x, v, C, F, tau, time) (the last stable state)."""
+        if self._backup is None:
+            P = self.n_particles
+            self._backup = {"x": ti.ndarray(K.vec3, P), "v": ti.ndarray(K.vec3, P), "C": ti.ndarray(K.mat3, P),
+                            "F": ti.ndarray(K.mat3, P), "tau": ti.ndarray(K.mat3, P)}
+        for name, arr in self._backup.items():
+            arr.copy_from(getattr(self, name))
+        self._backup_time = self.time
+
+    def restore_backup(self) -> None:
+        """Return to the state saved by :meth:`save_backup`."""
+        if self._backup is None:
+            raise RuntimeError("no backup saved")
+        for name, arr in self._backup.items():
+            getattr(self, name).copy_from(arr)
+        self.time = self._backup_time
+
+    def gather_rows(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions [R, 3] (domain units) and F [R, 3, 3] of particle ``rows`` (input order)."""
+        rows = np.asarray(rows, np.int64)
+        if not hasattr(self, "_gather_cache") or self._gather_cache[0] is not rows:
+            inv_perm = np.empty_like(self._perm)
+            inv_perm[self._perm] = np.arange(len(self._perm))
+            idx = _ndarray_from(inv_perm[rows].astype(np.int64), ti.i64)
+            R = len(rows)
+            self._gather_cache = (rows, idx, ti.ndarray(K.vec3, R), ti.ndarray(K.mat3, R))
+        _, idx, ox, oF = self._gather_cache
+        K.gather(idx, self.x, self.F, ox, oF, 1.0 / self.L)
+        return ox.to_numpy(), oF.to_numpy()
+
+    def device_bytes(self) -> int:
+        """Bytes of the solver's arrays (particles, grid, tables, backup)."""
+        P, G = self.n_particles, self.n_grid
+        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1)
+        backup = 4 * (3 + 3 + 9 + 9 + 9) * P if self._backup is not None else 0
+        return per_particle * P + 16 * self.n_chunks * G ** 3 + backup
+
+    # ------------------------------------------------------------------ helpers
+    def wave_speeds(self) -> np.ndarray:
+        """[K] P-wave speeds sqrt((lam + 2 mu) / rho) in m/s."""
+        return np.array([m.wave_speed for m in self.materials])
+
+
+def _as_array(a, dtype, shape: tuple, name: str) -> np.ndarray:
+    a = np.asarray(a, dtype=dtype)
+    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
+        raise InputError(name, f"expected shape {tuple('P' if s is None else s for s in shape)}, got {a.shape}")
+    if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
+        raise InputError(name, f"{int((~np.isfinite(a)).sum())} non-finite values")
+    return a
+
+
+def _ndarray_from(a: np.ndarray, dtype) -> "ti.Ndarray":
+    """A Taichi ndarray holding ``a`` (the trailing 1 or 2 axes are the vec3/mat3 element)."""
+    elem = 2 if dtype is K.mat3 else 1 if dtype is K.vec3 else 0
+    arr = ti.ndarray(dtype, a.shape[: a.ndim - elem])
+    arr.from_numpy(a)
+    return arr

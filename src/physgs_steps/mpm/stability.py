@@ -1,0 +1,161 @@
+"""Stability checks after each frame, and the error messages that say what to change.
+
+A frame fails when, for some instance, a particle state is NaN/Inf, a particle left the
+domain (its stencil leaves the grid), ``J = det F`` leaves ``[j_min, j_max]`` or a particle is
+faster than ``max_speed``.  :func:`check` returns a :class:`Failure` naming the instance that
+failed worst; :func:`explain` turns it into a message with the instance's material, its
+parameters, the time-step situation and the change that would help.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .materials import Material
+from .timestep import StepPlan, TimeStepper
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    j_min: float = 0.05
+    j_max: float = 20.0
+    max_speed: float = 100.0  # m/s
+
+    @classmethod
+    def from_config(cls, d: dict | None) -> "Thresholds":
+        d = d or {}
+        return cls(j_min=float(d.get("j_min", 0.05)), j_max=float(d.get("j_max", 20.0)),
+                   max_speed=float(d.get("max_speed", 100.0)))
+
+
+@dataclass
+class Failure:
+    kind: str                 # nonfinite | outside | j_low | j_high | speed
+    instance: int             # index of the worst instance
+    value: float              # the offending count / J / speed
+    frame: int
+    time: float
+    instances: list = field(default_factory=list)  # every failing instance index
+
+    def as_dict(self, materials: list[Material]) -> dict:
+        return {"kind": self.kind, "instance": materials[self.instance].name, "value": self.value,
+                "frame": self.frame, "time": self.time, "instances": [materials[i].name for i in self.instances]}
+
+
+def check(stats: dict, th: Thresholds, frame: int, time: float) -> Failure | None:
+    """The worst failure of a frame, or None.  ``stats``: per-instance arrays from
+    :meth:`MPMSolver.stats` (nonfinite, j_min, j_max, speed_max, outside) plus ``clamped``."""
+    nonfinite = np.asarray(stats["nonfinite"])
+    outside = np.asarray(stats["outside"])
+    jlo, jhi, vmax = (np.asarray(stats[k]) for k in ("j_min", "j_max", "speed_max"))
+    has = nonfinite == 0  # instances with finite particles have meaningful J/speed stats
+    tests = [
+        ("nonfinite", nonfinite > 0, nonfinite, True),
+        ("outside", outside > 0, outside, True),
+        ("speed", has & (vmax > th.max_speed), vmax, True),
+        ("j_low", has & (jlo < th.j_min), jlo, False),
+        ("j_high", has & (jhi > th.j_max), jhi, True),
+    ]
+    for kind, bad, value, largest in tests:
+        if bad.any():
+            idx = np.flatnonzero(bad)
+            worst = int(idx[np.argmax(value[idx])] if largest else idx[np.argmin(value[idx])])
+            return Failure(kind, worst, float(value[worst]), frame, time, [int(i) for i in idx])
+    if int(stats.get("clamped", 0)) > 0:  # left the grid during a substep, came back by the frame's end
+        return Failure("outside", int(np.argmax(outside)), float(stats["clamped"]), frame, time, [])
+    return None
+
+
+def explain(f: Failure, materials: list[Material], stepper: TimeStepper, plan: StepPlan, dx: float,
+            n_grid: int, th: Thresholds, stage: str) -> str:
+    """A user-facing message: what failed, where, with which material, and what to change."""
+    m = materials[f.instance]
+    what = {
+        "nonfinite": f"{int(f.value)} particles have NaN/Inf position, velocity or deformation",
+        "outside": f"{int(f.value)} particles left the simulation domain",
+        "speed": f"a particle moves at {f.value:.3g} m/s (limit sim.stability.max_speed = {th.max_speed:g})",
+        "j_low": f"volume ratio J = det F fell to {f.value:.3g} (limit sim.stability.j_min = {th.j_min:g})",
+        "j_high": f"volume ratio J = det F grew to {f.value:.3g} (limit sim.stability.j_max = {th.j_max:g})",
+    }[f.kind]
+    where = [materials[i].name for i in (f.instances or [f.instance])]
+    head = f"{stage}: the simulation became unstable at frame {f.frame} (t = {f.time:.3f} s): {what}"
+    if plan.over_cfl:  # the cause is the material(s) stepped above the CFL limit, whatever broke first
+        over = over_cfl_instances(materials, plan, dx, stepper.cfl)
+        stiff = materials[over[0]]
+        also = [materials[i].name for i in over[1:]]
+        spread = [w for w in where if w not in [materials[i].name for i in over]]
+        parts = [f"also over the CFL limit: {', '.join(repr(a) for a in also)}" if also else "",
+                 f"it spread to {', '.join(repr(w) for w in spread)}" if spread else ""]
+        extra = "; ".join(p for p in parts if p)
+        return (f"{head}, in instance {stiff.describe()}, which is too stiff for the substep cap"
+                f"{' (' + extra + ')' if extra else ''}. " + _advice(f, materials, stepper, plan, dx, n_grid))
+    others = [w for w in where if w != m.name]
+    also = f" (also affected: {', '.join(repr(o) for o in others)})" if others else ""
+    return f"{head}, in instance {m.describe()}{also}. " + _advice(f, materials, stepper, plan, dx, n_grid)
+
+
+def over_cfl_instances(materials: list[Material], plan: StepPlan, dx: float, cfl: float) -> list[int]:
+    """Indices of the instances whose own CFL number dt c_k / dx exceeded ``cfl`` in ``plan``,
+    stiffest first (at least the stiffest one)."""
+    order = sorted(range(len(materials)), key=lambda i: -materials[i].wave_speed)
+    over = [i for i in order if plan.dt * materials[i].wave_speed / dx > cfl * (1 + 1e-9)]
+    return over or order[:1]
+
+
+def failure_info(f: Failure, materials: list[Material], plan: StepPlan, dx: float, cfl: float) -> dict:
+    """Structured account of a failure (stored in the stats next to the message)."""
+    return {
+        "kind": f.kind, "frame": f.frame, "time": f.time, "value": f.value,
+        "instance": materials[f.instance].name,
+        "instances": [materials[i].name for i in (f.instances or [f.instance])],
+        "over_cfl": bool(plan.over_cfl), "dt": plan.dt, "cfl": plan.cfl,
+        "cfl_per_instance": {m.name: plan.dt * m.wave_speed / dx for m in materials},
+        "over_cfl_instances": [materials[i].name for i in over_cfl_instances(materials, plan, dx, cfl)]
+        if plan.over_cfl else [],
+    }
+
+
+def _advice(f: Failure, materials: list[Material], stepper: TimeStepper, plan: StepPlan, dx: float, n_grid: int) -> str:
+    stiff = max(range(len(materials)), key=lambda i: materials[i].wave_speed)
+    ms = materials[stiff]
+    m = materials[f.instance]
+    if plan.over_cfl:
+        need = stepper.substeps_needed(dx, ms.wave_speed)
+        c_ok = stepper.cfl * dx * stepper.max_substeps / stepper.frame_dt
+        e_ok = ms.max_E_for_wave_speed(c_ok)
+        return (f"The time step was above the CFL limit (CFL {plan.cfl:.2f} > sim.cfl = {stepper.cfl:g}) because "
+                f"sim.max_substeps = {stepper.max_substeps} caps the substeps: '{ms.name}' (E = {ms.E:.3g} Pa, "
+                f"density {ms.density:g} kg/m^3) has a wave speed of {ms.wave_speed:.3g} m/s and needs about {need} "
+                f"substeps per frame at n_grid {n_grid}. Lower its E to at most {e_ok:.3g} Pa, or raise "
+                f"sim.max_substeps to {need} (slower), or lower sim.n_grid.")
+    if f.kind == "j_low":
+        return (f"The material cannot carry the load (its own weight, an impact or a prescribed motion): raise E "
+                f"of '{m.name}' (now {m.E:.3g} Pa; try {10 * m.E:.3g}), lower its density ({m.density:g} kg/m^3), "
+                f"or give it a plasticity model that limits compression (j_clamp, drucker_prager).")
+    if f.kind == "j_high":
+        return (f"The material is torn or inflated apart: raise E of '{m.name}' (now {m.E:.3g} Pa), lower the "
+                "velocities and forces in the scene's dynamics, or use a plasticity model (j_clamp caps J).")
+    if f.kind in ("outside", "speed"):
+        return ("Check the scene's dynamics (initial velocities, impulses, enforced motions) and the domain walls; "
+                f"a very soft or light material (E = {m.E:.3g} Pa, density {m.density:g} kg/m^3) can also splash "
+                "out. Lower the velocities, raise E, or lower sim.cfl.")
+    return (f"Lower sim.cfl (now {stepper.cfl:g}) or the stiffness of '{ms.name}' (E = {ms.E:.3g} Pa), or check "
+            f"its Poisson ratio (nu = {ms.nu:g}; values near 0.5 make it nearly incompressible and hard to step).")
+
+
+def cfl_note(materials: list[Material], stepper: TimeStepper, dx: float) -> str | None:
+    """A warning when the stiffest material needs more substeps than the cap, else None."""
+    stiff = max(materials, key=lambda m: m.wave_speed)
+    need = stepper.substeps_needed(dx, stiff.wave_speed)
+    if stepper.mode == "adaptive" and need > stepper.max_substeps:
+        return (f"'{stiff.name}' (E = {stiff.E:.3g} Pa, wave speed {stiff.wave_speed:.3g} m/s) needs {need} substeps "
+                f"per frame for CFL {stepper.cfl:g}; sim.max_substeps = {stepper.max_substeps} caps it, so the run "
+                f"steps at CFL {stepper.cfl * need / stepper.max_substeps:.2f}")
+    if stepper.mode == "fixed":
+        cfl = stepper.frame_dt / stepper.fixed_substeps * stiff.wave_speed / dx
+        if cfl > stepper.cfl:
+            return (f"fixed substep_dt gives CFL {cfl:.2f} for '{stiff.name}' (wave speed {stiff.wave_speed:.3g} m/s), "
+                    f"above sim.cfl = {stepper.cfl:g}")
+    return None
+

@@ -1,0 +1,264 @@
+"""Stages forward_sim and final_sim: the MLS-MPM simulation of the filled scene.
+
+Both read ``particles.h5`` (fill stage) and ``params.json`` (vlm_params / bgdo_update) and
+simulate with :mod:`physgs_steps.mpm` under ``cfg["sim"]`` (sim.schema.yaml) and the scene's
+``dynamics`` (scene_dynamics.schema.yaml).  Formats: docs/CONTRACTS.md.
+
+* ``run_forward`` (gradient-free forward run for BGDO) writes ``forward.h5`` with the key
+  frames ``round(f (T - 1))`` for ``f`` in ``bgdo.key_frames`` over ``T = bgdo.forward_frames``
+  (null: ``sim.n_frames``) frames: x, v, C, F of every particle in domain units.  If the run
+  becomes unstable it does NOT fail: the state of the last stable frame is stored as the last
+  key frame (attribute ``substitute_for`` lists the key frames it stands for), key frames
+  after it are left out, and ``stats`` records ``stable: false`` with the reason.  BGDO then
+  sees the parameters that broke the run (a too stiff E for the substep cap shows up as huge
+  stresses, a too soft one as large deformation) and corrects them.
+* ``run_final`` writes ``final.h5``: positions and deformation gradients of the visible
+  gaussians (rows of scene.ply, i.e. non-filled particles) for every frame, one gzip chunk per
+  frame.  An unstable run stops with a :class:`SimulationError` naming the instance, its
+  material and parameters and what to change; no output is written.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .errors import ConfigError, InputError, SimulationError
+from .runtime import atomic_path, peak_rss_mb, read_json
+from .mpm.dynamics import Dynamics, describe_counts
+from .mpm.materials import Material
+from .mpm.runner import RunResult, run_frames
+from .mpm.solver import MPMSolver
+from .mpm.stability import Thresholds, cfl_note
+from .mpm.timestep import TimeStepper
+
+DEFAULT_KEY_FRAMES = (0.0, 0.5, 1.0)
+
+
+# ============================================================================ inputs
+def load_particles(path: str | Path) -> dict:
+    """Read particles.h5: {"x" [P,3] f32, "label" [P] int32, "filled" [P] bool, "vol" [P] f32,
+    "n_gaussians"}.  Raises InputError on a missing/malformed file."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "particles file does not exist")
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [k for k in ("x", "label", "filled", "vol") if k not in f]
+            if missing:
+                raise InputError(path, f"missing datasets {missing}")
+            out = {"x": f["x"][()], "label": f["label"][()], "filled": f["filled"][()].astype(bool), "vol": f["vol"][()]}
+            n_g = f.attrs.get("n_gaussians")
+    except OSError as e:
+        raise InputError(path, f"not a readable HDF5 file: {e}") from None
+    P = len(out["x"])
+    if out["x"].ndim != 2 or out["x"].shape[1] != 3 or P == 0:
+        raise InputError(path, f"x must have shape [P, 3] with P > 0, got {out['x'].shape}")
+    for k in ("label", "filled", "vol"):
+        if out[k].shape != (P,):
+            raise InputError(path, f"{k} must have shape [{P}], got {out[k].shape}")
+    for k in ("x", "vol"):
+        if not np.all(np.isfinite(out[k])):
+            raise InputError(path, f"{k} has {int((~np.isfinite(out[k])).sum())} non-finite values")
+    if np.any(out["vol"] <= 0):
+        raise InputError(path, "vol must be > 0 for every particle")
+    out["n_gaussians"] = int(n_g) if n_g is not None else int((~out["filled"]).sum())
+    return out
+
+
+def load_materials(path: str | Path, labels_present: np.ndarray) -> tuple[dict, list[Material], list[int]]:
+    """Read params.json; return (params dict, materials, labels) for the labels present in the
+    particles, in label order.  Raises InputError naming the file and entry."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "params file does not exist")
+    try:
+        params = read_json(path)
+    except (OSError, json.JSONDecodeError) as e:
+        raise InputError(path, f"not valid JSON: {e}") from None
+    if not isinstance(params, dict) or not isinstance(params.get("instances"), list):
+        raise InputError(path, "must be an object with an 'instances' list")
+    by_label = {}
+    for i, e in enumerate(params["instances"]):
+        if not isinstance(e, dict) or not isinstance(e.get("label"), int) or isinstance(e.get("label"), bool):
+            raise InputError(path, f"instances[{i}] needs an integer 'label'")
+        try:
+            by_label[e["label"]] = Material.from_params(e, f"instances[{i}]")
+        except ConfigError as err:
+            raise InputError(path, str(err)) from None
+    labels = sorted(int(l) for l in np.unique(labels_present))
+    missing = [l for l in labels if l not in by_label]
+    if missing:
+        raise InputError(path, f"no material for particle label(s) {missing}; entries exist for {sorted(by_label)}")
+    return params, [by_label[l] for l in labels], labels
+
+
+def _backend(cfg: dict) -> str:
+    b = cfg["sim"].get("backend", "auto")
+    if b == "auto" and cfg.get("device") in ("cpu", "cuda"):
+        return cfg["device"]
+    return b
+
+
+def _key_frames(cfg: dict, n_frames: int) -> list[int]:
+    fracs = (cfg.get("bgdo") or {}).get("key_frames") or DEFAULT_KEY_FRAMES
+    frames = []
+    for f in fracs:
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0.0 <= f <= 1.0:
+            raise ConfigError("bgdo.key_frames", f"entries are fractions in [0, 1], got {f!r}")
+        frames.append(int(round(f * (n_frames - 1))))
+    return sorted(set(frames))
+
+
+def _forward_frames(cfg: dict) -> int:
+    n = (cfg.get("bgdo") or {}).get("forward_frames")
+    n = cfg["sim"]["n_frames"] if n is None else n
+    if isinstance(n, bool) or not isinstance(n, int) or n < 2:
+        raise ConfigError("bgdo.forward_frames", f"must be an integer >= 2 or null, got {n!r}")
+    return n
+
+
+# ============================================================================ set-up
+def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg: dict, log: logging.Logger) -> MPMSolver:
+    """A loaded MPMSolver for the particles, materials and cfg (sim + scene dynamics)."""
+    sim = cfg["sim"]
+    scene = cfg.get("scene") or {}
+    dyn = Dynamics.from_config(scene.get("dynamics"), source=str(scene.get("_path", "scene file")))
+    solver = MPMSolver(materials, n_grid=int(sim["n_grid"]), domain_size=float(sim["domain_size"]), dynamics=dyn,
+                       backend=_backend(cfg), labels=labels, sort_particles=bool(sim.get("sort_particles", True)))
+    index = {l: i for i, l in enumerate(labels)}
+    material = np.array([index[int(l)] for l in parts["label"]], np.int64)
+    solver.set_particles(parts["x"], parts["vol"], material)
+    counts = np.bincount(material, minlength=len(materials))
+    for m, n in zip(materials, counts):
+        log.info("instance %s: %d particles, wave speed %.3g m/s", m.describe(), n, m.wave_speed)
+    log.info("MPM: %d particles, grid %d^3 (dx %.4g m), backend %s, %s", solver.n_particles, solver.n_grid,
+             solver.dx, solver.arch, describe_counts(solver.bound))
+    return solver
+
+
+def _prepare(inputs: dict, cfg: dict, log: logging.Logger):
+    if "sim" not in cfg:
+        raise ConfigError("sim", "the stage config has no 'sim' section")
+    parts = load_particles(inputs["particles"])
+    params, materials, labels = load_materials(inputs["params"], parts["label"])
+    stepper = TimeStepper.from_config(cfg["sim"])
+    th = Thresholds.from_config(cfg["sim"].get("stability"))
+    solver = build_solver(parts, materials, labels, cfg, log)
+    note = cfl_note(materials, stepper, solver.dx)
+    if note:
+        log.warning("%s", note)
+    return parts, params, solver, stepper, th
+
+
+def _stats(res: RunResult, solver: MPMSolver, extra: dict) -> dict:
+    out = res.summary(solver.n_particles)
+    out.update({
+        "n_particles": solver.n_particles, "n_grid": solver.n_grid, "backend": solver.arch,
+        "peak_rss_mb": round(peak_rss_mb(), 1), "solver_device_mb": round(solver.device_bytes() / 2**20, 1),
+    })
+    out.update(extra)
+    return out
+
+
+def _sim_config(cfg: dict, solver: MPMSolver, stepper: TimeStepper) -> dict:
+    scene = cfg.get("scene") or {}
+    return {"sim": cfg["sim"], "dynamics": scene.get("dynamics"), "backend": solver.arch,
+            "frame_dt": stepper.frame_dt, "dx": solver.dx}
+
+
+# ============================================================================ forward
+def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
+    """Stage forward_sim: key-frame snapshots for BGDO (see the module docstring)."""
+    parts, params, solver, stepper, th = _prepare(inputs, cfg, log)
+    n_frames = _forward_frames(cfg)
+    keys = _key_frames(cfg, n_frames)
+    log.info("forward run: %d frames at %g fps, key frames %s", n_frames, stepper.fps, keys)
+    snaps: dict[int, dict] = {}
+
+    def on_frame(k: int, t: float, dt_next: float) -> None:
+        if k in keys:
+            snaps[k] = {**solver.get_state(), "time": t, "dt": dt_next}
+
+    res = run_frames(solver, n_frames, stepper, th, on_frame, log, keep_backup=True, stage="forward_sim")
+    missing = [k for k in keys if k not in snaps]
+    substitute = None
+    if missing:
+        k = res.last_stable_frame
+        if k not in snaps:
+            c_max = float(np.max(solver.wave_speeds()))
+            plan = stepper.plan(solver.dx, c_max, float(np.max(solver.stats()["speed_max"])))
+            snaps[k] = {**solver.get_state(), "time": k * stepper.frame_dt, "dt": plan.dt}
+        substitute = (k, missing)
+        log.warning("forward run unstable: key frames %s replaced by the last stable frame %d", missing, k)
+    stats = _stats(res, solver, {"key_frames_requested": keys, "key_frames_written": sorted(snaps),
+                                 "forward_frames": n_frames})
+    with atomic_path(outputs["keyframes"]) as tmp:
+        with h5py.File(tmp, "w") as f:
+            g = f.create_group("particles")
+            g.create_dataset("label", data=parts["label"].astype(np.int32))
+            g.create_dataset("filled", data=parts["filled"])
+            g.create_dataset("vol", data=parts["vol"].astype(np.float32))
+            kf = f.create_group("keyframes")
+            for k in sorted(snaps):
+                s = snaps[k]
+                h = kf.create_group(str(k))
+                for name in ("x", "v", "C", "F"):
+                    h.create_dataset(name, data=s[name].astype(np.float32))
+                h.attrs["frame"] = k
+                h.attrs["time"] = float(s["time"])
+                h.attrs["dt"] = float(s["dt"])
+                if substitute and k == substitute[0]:
+                    h.attrs["substitute_for"] = np.array(substitute[1], np.int64)
+            f.attrs["params"] = json.dumps(params)
+            f.attrs["sim_config"] = json.dumps(_sim_config(cfg, solver, stepper), default=str)
+            f.attrs["stats"] = json.dumps(stats)
+    log.info("forward_sim: %s, %d substeps in %.1f s (+%.1f s first substep); key frames %s -> %s",
+             "stable" if res.stable else "UNSTABLE", stats["substeps_total"], res.step_seconds,
+             res.first_substep_seconds, sorted(snaps), outputs["keyframes"])
+    return {"stable": res.stable, "substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
+            "key_frames": sorted(snaps)}
+
+
+# ============================================================================ final
+def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
+    """Stage final_sim: per-frame positions and F of the visible gaussians (final.h5)."""
+    parts, params, solver, stepper, th = _prepare(inputs, cfg, log)
+    n_frames = int(cfg["sim"]["n_frames"])
+    rows = np.flatnonzero(~parts["filled"][: parts["n_gaussians"]]).astype(np.int64)
+    if len(rows) == 0:
+        raise InputError(inputs["particles"], "no visible (non-filled) gaussians to write")
+    level = int(cfg["sim"].get("compression", 4))
+    comp = {"compression": "gzip", "compression_opts": level, "shuffle": True} if level > 0 else {}
+    Nv = len(rows)
+    with atomic_path(outputs["frames"]) as tmp:
+        with h5py.File(tmp, "w") as f:
+            dx_ = f.create_dataset("x", (n_frames, Nv, 3), np.float32, chunks=(1, Nv, 3), **comp)
+            dF = f.create_dataset("F", (n_frames, Nv, 3, 3), np.float32, chunks=(1, Nv, 3, 3), **comp)
+            f.create_dataset("gaussian_index", data=rows)
+            times = np.arange(n_frames, dtype=np.float64) * stepper.frame_dt
+            f.create_dataset("time", data=times)
+
+            def on_frame(k: int, t: float, dt_next: float) -> None:
+                xs, Fs = solver.gather_rows(rows)
+                dx_[k] = xs
+                dF[k] = Fs
+
+            log.info("final run: %d frames at %g fps, %d visible gaussians", n_frames, stepper.fps, Nv)
+            res = run_frames(solver, n_frames, stepper, th, on_frame, log, stage="final_sim")
+            if not res.stable:
+                raise SimulationError(res.message)
+            stats = _stats(res, solver, {"n_frames": n_frames, "n_visible": Nv,
+                                         "write_seconds": round(res.callback_seconds, 3)})
+            f.attrs["stats"] = json.dumps(stats)
+            f.attrs["params"] = json.dumps(params)
+            f.attrs["sim_config"] = json.dumps(_sim_config(cfg, solver, stepper), default=str)
+    log.info("final_sim: %d frames, %d substeps in %.1f s (+%.1f s first substep, %.1f s writing) -> %s",
+             n_frames, stats["substeps_total"], res.step_seconds, res.first_substep_seconds, res.callback_seconds,
+             outputs["frames"])
+    return {"substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
+            "particle_substeps_per_second": stats["particle_substeps_per_second"]}
+

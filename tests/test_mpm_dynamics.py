@@ -1,0 +1,139 @@
+"""Scene dynamics: ground collider, fixed cuboid, impulse, wind, enforced translation and
+rotation, initial velocities, and the config errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from physgs_steps.errors import ConfigError
+from physgs_steps.mpm import Dynamics, Material, MPMSolver
+
+NAMES = ["faller", "pinned", "kicked", "pulled", "spun", "blown"]
+CENTRES = {
+    "faller": [0.25, 0.25, 0.25],
+    "pinned": [0.5, 0.25, 0.55],
+    "kicked": [0.25, 0.6, 0.55],
+    "pulled": [0.5, 0.6, 0.55],
+    "spun": [0.75, 0.3, 0.55],
+    "blown": [0.75, 0.7, 0.35],
+}
+HALF = 0.04
+DYNAMICS = {
+    "gravity": [0.0, 0.0, 0.0],
+    "ground": {"height": 0.1, "friction": 0.5, "surface": "separate"},
+    "initial_velocity": [
+        {"instance": "faller", "velocity": [0.0, 0.0, -1.5]},
+        {"instance": "pinned", "velocity": [1.0, 0.0, 0.0]},
+    ],
+    "boundary_conditions": [
+        {"type": "bounding_box"},
+        {"type": "cuboid", "point": CENTRES["pinned"], "size": [0.06, 0.06, 0.06], "velocity": [0, 0, 0]},
+        {"type": "particle_impulse", "instance": "kicked", "delta_v": [0.0, 0.0, 0.5], "duration": 0.02},
+        {"type": "enforce_particle_translation", "instance": "pulled", "bbox_min": [0, 0.5, 0], "bbox_max": [1, 1, 1],
+         "velocity": [0.0, 0.3, 0.0]},
+        {"type": "enforce_particle_velocity_rotation", "instance": "spun", "point": CENTRES["spun"],
+         "normal": [0, 0, 1], "half_height_and_radius": [0.1, 0.1], "rotation_scale": 2.0, "translation_scale": 0.0},
+        {"type": "wind", "instance": "blown", "mean": [0.0, 0.0, 2.0], "amplitude": [0.0, 0.0, 0.0], "frequency": 1.0},
+    ],
+}
+
+
+def _blocks():
+    xs, mats = [], []
+    for k, n in enumerate(NAMES):
+        c = np.asarray(CENTRES[n])
+        axes = [np.arange(a - HALF + 0.005, a + HALF, 0.01) for a in c]
+        x = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        xs.append(x)
+        mats.append(np.full(len(x), k))
+    x = np.concatenate(xs)
+    return x, np.full(len(x), 1e-6), np.concatenate(mats)
+
+
+@pytest.fixture(scope="module")
+def run():
+    x, vol, mat = _blocks()
+    mats = [Material("fixed_corotated", "identity", E=2e5, nu=0.3, density=1000.0, name=n) for n in NAMES]
+    s = MPMSolver(mats, n_grid=32, dynamics=Dynamics.from_config(DYNAMICS, "test"), backend="cpu")
+    s.set_particles(x, vol, mat)
+    v0 = s.get_state()["v"]
+    dt, n = 1e-3, 300
+    for _ in range(n):
+        s.substep(dt)
+    return x, mat, v0, s.get_state(), n * dt, s
+
+
+def test_initial_velocities(run):
+    x, mat, v0, _, _, _ = run
+    assert np.allclose(v0[mat == 0], [0.0, 0.0, -1.5])
+    assert np.allclose(v0[mat == 1], [1.0, 0.0, 0.0])
+    assert np.allclose(v0[mat > 1], 0.0)
+
+
+def test_ground_reflects_a_falling_block(run):
+    x, mat, _, st, _, _ = run
+    # thrown down at 1.5 m/s without gravity: it reaches the plane at z = 0.1 after ~0.07 s,
+    # bounces (an elastic block) and leaves upwards; nothing passes through the plane
+    assert np.mean(st["v"][mat == 0, 2]) > 0.5
+    assert st["x"][mat == 0, 2].min() > 0.1
+
+
+def test_fixed_cuboid_holds_its_contents(run):
+    x, mat, _, st, _, _ = run
+    assert np.abs(st["x"][mat == 1] - x[mat == 1]).max() < 0.01
+
+
+def test_impulse_gives_its_velocity_change(run):
+    _, mat, _, st, _, _ = run
+    assert np.mean(st["v"][mat == 2, 2]) == pytest.approx(0.5, abs=0.02)
+
+
+def test_enforced_translation_moves_the_selected_particles(run):
+    x, mat, _, st, t, _ = run
+    sel = (mat == 3) & (x[:, 1] >= x[mat == 3, 1].min() + 0.5 * np.ptp(x[mat == 3, 1]))
+    dy = st["x"][sel, 1] - x[sel, 1]
+    assert np.median(dy) == pytest.approx(0.3 * t, rel=0.1)
+
+
+def test_enforced_rotation_spins_the_cylinder(run):
+    x, mat, _, st, t, _ = run
+    c = np.asarray(CENTRES["spun"])
+    sel = mat == 4
+    a0 = np.arctan2(x[sel, 1] - c[1], x[sel, 0] - c[0])
+    a1 = np.arctan2(st["x"][sel, 1] - c[1], st["x"][sel, 0] - c[0])
+    turn = np.angle(np.exp(1j * (a1 - a0)))
+    assert np.median(turn) == pytest.approx(2.0 * t, rel=0.1)
+
+
+def test_wind_accelerates_its_instance_only(run):
+    x, mat, _, st, t, _ = run
+    assert np.mean(st["v"][mat == 5, 2]) == pytest.approx(2.0 * t, rel=0.05)
+    assert np.abs(st["v"][mat == 4, 2]).max() < 0.05
+
+
+def test_bound_dynamics_table(run):
+    *_, s = run
+    assert s.bound.counts == (1, 1, 2, 1, 1)
+    assert s.bound.selected[0] == np.sum(_blocks()[2] == 2)
+
+
+def test_initial_velocity_toward_another_instance():
+    d = Dynamics.from_config({"initial_velocity": [{"instance": "a", "toward": "b", "speed": 2.0}]})
+    x = np.array([[0.3, 0.5, 0.5], [0.3, 0.5, 0.5], [0.7, 0.5, 0.5]])
+    v = d.initial_velocities(x, np.array([0, 0, 1]), np.zeros((2, 3)), ["a", "b"], [0, 1])
+    assert np.allclose(v, [[2, 0, 0], [2, 0, 0], [0, 0, 0]])
+
+
+def test_dynamics_config_errors_name_the_key():
+    with pytest.raises(ConfigError, match="allowed keys"):
+        Dynamics.from_config({"gravitation": [0, 0, -9.8]})
+    with pytest.raises(ConfigError, match=r"boundary_conditions\[0\].*delta_v"):
+        Dynamics.from_config({"boundary_conditions": [{"type": "particle_impulse"}]})
+    with pytest.raises(ConfigError, match="point and size"):
+        Dynamics.from_config({"boundary_conditions": [{"type": "wind", "point": [0.5, 0.5, 0.5]}]})
+    d = Dynamics.from_config({"boundary_conditions": [{"type": "cuboid", "instance": "pot"}]})
+    with pytest.raises(ConfigError, match="unknown instance 'pot'.*ficus"):
+        d.bind(np.full((4, 3), 0.5), np.zeros(4, int), ["ficus"], [0], 1.0)
+    d = Dynamics.from_config({"boundary_conditions": [{"type": "wind", "point": [0.1, 0.1, 0.1], "size": [0.01] * 3}]})
+    with pytest.raises(ConfigError, match="selects no particles"):
+        d.bind(np.full((4, 3), 0.5), np.zeros(4, int), ["ficus"], [0], 1.0)

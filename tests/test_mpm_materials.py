@@ -1,0 +1,208 @@
+"""Constitutive models of the MPM solver against independent NumPy evaluations of the
+paper's appendix formulas (first Piola-Kirchhoff P, tau = P F^T), rigid rotations, and the
+return maps landing on or inside their yield surfaces."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from physgs_steps.errors import ConfigError
+from physgs_steps.mpm import MPMSolver
+from physgs_steps.mpm.materials import Material, dp_alpha, lame, preset
+
+E, NU = 2.0e5, 0.3
+ELASTIC = ["fixed_corotated", "neo_hookean", "stvk_hencky", "volume", "fluid"]
+
+
+def _random_F(n: int, scale: float, seed: int, positive: bool = True) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    F = np.eye(3) + scale * rng.standard_normal((n, 3, 3))
+    if positive:
+        F = F[np.linalg.det(F) > 0.2]
+    return F
+
+
+def _random_rotations(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    q = rng.standard_normal((n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def _svd_proper(F):
+    """F = U diag(s) V^T with det U = det V = +1 (the last singular value carries the sign)."""
+    U, s, Vt = np.linalg.svd(F)
+    V = np.swapaxes(Vt, -1, -2)
+    du, dv = np.linalg.det(U), np.linalg.det(V)
+    U[..., :, 2] *= du[..., None]
+    V[..., :, 2] *= dv[..., None]
+    s = s.copy()
+    s[..., 2] *= du * dv
+    return U, s, V
+
+
+def _numpy_tau(model: str, F: np.ndarray, mu: float, lam: float) -> np.ndarray:
+    """Appendix A / B.1 formulas in float64: P(F), then tau = P F^T."""
+    J = np.linalg.det(F)
+    Finv_T = np.swapaxes(np.linalg.inv(F), -1, -2)
+    Ft = np.swapaxes(F, -1, -2)
+    eye = np.eye(3)
+    U, s, V = _svd_proper(F)
+    if model == "fixed_corotated":  # P = 2 mu (F - R) + lam J (J - 1) F^-T
+        R = U @ np.swapaxes(V, -1, -2)
+        P = 2 * mu * (F - R) + lam * (J * (J - 1))[:, None, None] * Finv_T
+    elif model == "neo_hookean":  # P = mu (F - F^-T) + lam log(J) F^-T
+        P = mu * (F - Finv_T) + lam * np.log(J)[:, None, None] * Finv_T
+    elif model == "stvk_hencky":  # P = U (2 mu S^-1 ln S + lam tr(ln S) S^-1) V^T
+        ln = np.log(s)
+        d = (2 * mu * ln + lam * ln.sum(-1, keepdims=True)) / s
+        P = U @ (d[..., :, None] * np.swapaxes(V, -1, -2))
+    elif model == "volume":  # tau = kappa (J - J^(1 - gamma)) I, gamma = 2
+        return ((2 / 3 * mu + lam) * (J - 1 / J))[:, None, None] * eye
+    elif model == "fluid":  # tau = lam J (J - 1) I
+        return (lam * J * (J - 1))[:, None, None] * eye
+    return P @ Ft
+
+
+@pytest.fixture(scope="module")
+def elastic_solver():
+    mats = [Material(m, "identity" if m != "fluid" else "fluid", E=E, nu=NU, density=1000.0, name=m) for m in ELASTIC]
+    return MPMSolver(mats, n_grid=16, backend="cpu")
+
+
+@pytest.mark.parametrize("k,model", list(enumerate(ELASTIC)))
+def test_stress_matches_appendix_formula(elastic_solver, k, model):
+    mu, lam = lame(E, NU)
+    F = np.concatenate([_random_F(300, 0.02, k), _random_F(300, 0.25, 10 + k)])
+    tau = elastic_solver.kirchhoff(F, np.full(len(F), k))
+    ref = _numpy_tau(model, F, mu, lam)
+    scale = np.abs(ref).max()
+    assert np.abs(tau - ref).max() <= 2e-4 * scale + 1e-3 * mu * 1e-3
+
+
+def test_fixed_corotated_inverted_elements(elastic_solver):
+    """det F < 0: R = U V^T with proper rotations (the SVD branch of the polar rotation)."""
+    mu, lam = lame(E, NU)
+    F = _random_F(2000, 0.8, 3, positive=False)
+    F = F[np.linalg.det(F) < -0.05]
+    assert len(F) > 50
+    tau = elastic_solver.kirchhoff(F, np.zeros(len(F), int))
+    ref = _numpy_tau("fixed_corotated", F, mu, lam)
+    assert np.abs(tau - ref).max() <= 1e-4 * np.abs(ref).max()
+
+
+@pytest.mark.parametrize("k,model", list(enumerate(ELASTIC)))
+def test_rigid_rotation_has_no_stress(elastic_solver, k, model):
+    R = _random_rotations(500, 7 + k)
+    tau = elastic_solver.kirchhoff(R, np.full(len(R), k))
+    assert np.abs(tau).max() < 1e-5 * E
+
+
+def _numpy_return_map(model: str, F: np.ndarray, m: Material) -> np.ndarray:
+    """CONTRACTS.md return maps in float64 (independent of the Taichi code)."""
+    mu, lam = lame(m.E, m.nu)
+    J = np.linalg.det(F)
+    if model == "identity":
+        return F
+    if model in ("j_clamp", "fluid"):
+        Jc = np.clip(J, m.j_min, m.j_max) if model == "j_clamp" else J
+        return np.cbrt(Jc)[:, None, None] * np.eye(3)
+    U, s, V = _svd_proper(F)
+    eps = np.log(np.maximum(s, 1e-6))
+    if model == "von_mises":
+        hat = eps - eps.mean(-1, keepdims=True)
+        n = np.linalg.norm(hat, axis=-1, keepdims=True)
+        dg = n - m.yield_stress / (2 * mu)
+        eps = np.where(dg > 0, eps - dg * hat / np.maximum(n, 1e-30), eps)
+    else:  # drucker_prager
+        e = eps - m.cohesion
+        tr = e.sum(-1, keepdims=True)
+        hat = e - tr / 3
+        n = np.linalg.norm(hat, axis=-1, keepdims=True)
+        dg = n + (3 * lam + 2 * mu) / (2 * mu) * tr * dp_alpha(m.friction_angle)
+        e = np.where(tr >= 0, 0.0, np.where(dg > 0, e - dg * hat / np.maximum(n, 1e-30), e))
+        eps = e + m.cohesion
+    return U @ (np.exp(eps)[..., :, None] * np.swapaxes(V, -1, -2))
+
+
+PLASTIC = [
+    Material("fixed_corotated", "identity", E=E, nu=NU, density=1000.0, name="identity"),
+    Material("fixed_corotated", "j_clamp", E=E, nu=NU, density=1000.0, name="j_clamp", j_min=0.9, j_max=1.05),
+    Material("stvk_hencky", "von_mises", E=E, nu=NU, density=1000.0, name="von_mises", yield_stress=2.0e3),
+    Material("stvk_hencky", "drucker_prager", E=E, nu=NU, density=1600.0, name="drucker_prager", friction_angle=30.0,
+             cohesion=0.01),
+    Material("fluid", "fluid", E=E, nu=NU, density=1000.0, name="fluid"),
+]
+
+
+@pytest.fixture(scope="module")
+def plastic_solver():
+    return MPMSolver(PLASTIC, n_grid=16, backend="cpu")
+
+
+@pytest.mark.parametrize("k", range(len(PLASTIC)))
+def test_return_map_lands_on_or_inside_yield_surface(plastic_solver, k):
+    m = PLASTIC[k]
+    mu, lam = lame(m.E, m.nu)
+    F_trial = np.concatenate([_random_F(400, 0.01, 20 + k), _random_F(400, 0.3, 30 + k)])
+    F, tau = plastic_solver.return_map(F_trial, np.full(len(F_trial), k))
+    F = F.astype(np.float64)
+    J = np.linalg.det(F)
+    _, s, _ = _svd_proper(F)
+    eps = np.log(np.maximum(s, 1e-6))
+    if m.plasticity == "identity":
+        assert np.allclose(F, F_trial, atol=1e-6)
+    elif m.plasticity == "j_clamp":
+        assert np.all(J >= m.j_min * (1 - 1e-5)) and np.all(J <= m.j_max * (1 + 1e-5))
+        assert np.allclose(F, np.cbrt(J)[:, None, None] * np.eye(3), atol=1e-6)
+    elif m.plasticity == "fluid":
+        assert np.allclose(J, np.linalg.det(F_trial), rtol=1e-4)
+        assert np.allclose(F, np.cbrt(J)[:, None, None] * np.eye(3), atol=1e-6)
+    elif m.plasticity == "von_mises":
+        dev = np.linalg.norm(eps - eps.mean(-1, keepdims=True), axis=-1)
+        assert np.all(dev <= m.yield_stress / (2 * mu) + 2e-5)
+        assert np.mean(dev > 0.9 * m.yield_stress / (2 * mu)) > 0.3  # many trial states were projected
+    else:
+        e = eps - m.cohesion
+        tr = e.sum(-1)
+        f = np.linalg.norm(e - tr[:, None] / 3, axis=-1) + (3 * lam + 2 * mu) / (2 * mu) * tr * dp_alpha(m.friction_angle)
+        assert np.all(f <= 2e-5)
+        assert np.all(tr <= 2e-5)
+    ref = _numpy_return_map(m.plasticity, F_trial, m)
+    assert np.abs(F - ref).max() < 2e-5
+    # the returned stress is the stress of the returned F
+    tau_of_F = plastic_solver.kirchhoff(F.astype(np.float32), np.full(len(F), k))
+    assert np.abs(tau - tau_of_F).max() <= 1e-4 * np.abs(tau_of_F).max() + 1e-6 * mu
+
+
+def test_material_validation_names_the_key():
+    with pytest.raises(ConfigError, match="nu"):
+        Material("fixed_corotated", "identity", E=1e5, nu=0.5, density=1000.0)
+    with pytest.raises(ConfigError, match="yield_stress"):
+        Material("stvk_hencky", "von_mises", E=1e5, nu=0.3, density=1000.0)
+    with pytest.raises(ConfigError, match="friction_angle"):
+        Material("stvk_hencky", "drucker_prager", E=1e5, nu=0.3, density=1000.0)
+    with pytest.raises(ConfigError, match="elasticity"):
+        Material("rubbery", "identity", E=1e5, nu=0.3, density=1000.0)
+    with pytest.raises(ConfigError, match="E"):
+        Material("fixed_corotated", "identity", E=float("nan"), nu=0.3, density=1000.0)
+    assert Material("sigma", "sigma", E=1e5, nu=0.3, density=1.0).models == ("stvk_hencky", "j_clamp")
+
+
+@pytest.mark.parametrize("name", ["jelly", "rubber", "elastomer", "metal", "sand", "snow", "plasticine", "water", "foam",
+                                  "stone"])
+def test_presets_come_from_the_knowledge_base(name):
+    from physgs_steps import materials_kb
+
+    m = preset(name, name="obj")
+    e = materials_kb.get_material(name)
+    assert (m.elasticity, m.plasticity, m.E, m.nu, m.density) == (e["elasticity"], e["plasticity"], e["E"], e["nu"],
+                                                                   e["density"])
+    assert m.wave_speed == pytest.approx(math.sqrt((m.lam + 2 * m.mu) / m.density))
