@@ -16,8 +16,12 @@ include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
 
 
+# `snakemake --cores 1` alone: the main job (bear), or the first scene of a custom scenes_dir.
+MAIN_SCENE = "bear" if "bear" in SCENES else SCENES[0]
+
+
 rule all:
     default_target: True
     input:
-        video=plan_path("bear", "video"),
-        metrics=plan_path("bear", "metrics"),
+        video=plan_path(MAIN_SCENE, "video"),
+        metrics=plan_path(MAIN_SCENE, "metrics"),
