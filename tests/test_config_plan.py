@@ -79,3 +79,25 @@ def test_parse_target_and_steps():
     with pytest.raises(ConfigError):
         P.parse_target("bear/x")
     assert P.previous_step("it1-abc") == "it0" and P.previous_step("it3-abc") == "it2-abc"
+
+
+def test_scene_camera_edit_reaches_only_render(cfg, tmp_path, repo):
+    import yaml
+
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    data = yaml.safe_load((repo / "config" / "scenes" / "bear.yaml").read_text())
+    (scenes / "bear.yaml").write_text(yaml.safe_dump(data))
+    data["camera"] = dict(data.get("camera") or {}, elevation_deg=42.0)
+    data["instances"][0]["hint"] = "a rubber teddy bear"
+    (scenes / "bear2.yaml").write_text(yaml.safe_dump(data))
+    c = copy.deepcopy(cfg)
+    c["scenes_dir"] = str(scenes)
+    a, b = P.make_plan(c, "bear"), P.make_plan(c, "bear2")
+    for stage in ("prepare", "cluster", "fill", "sim", "bgdo", "metrics"):
+        assert {k: v for k, v in a.cfgs[stage]["scene"].items() if k != "_path"} == \
+               {k: v for k, v in b.cfgs[stage]["scene"].items() if k != "_path"}, stage
+    assert a.cfgs["render"]["scene"]["camera"] != b.cfgs["render"]["scene"]["camera"]
+    # a material hint changes the parameters (and so the simulation) but not clustering or filling
+    assert a.ids["cluster"] == b.ids["cluster"] and a.ids["fill"] == b.ids["fill"]
+    assert a.ids["params"] != b.ids["params"]

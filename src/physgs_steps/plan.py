@@ -33,13 +33,44 @@ RESULTS = "results"
 _GEOMETRY_KEYS = ("at", "box")
 
 
+def _strip_private(obj):
+    if isinstance(obj, dict):
+        return {k: _strip_private(v) for k, v in obj.items() if not str(k).startswith("_")}
+    if isinstance(obj, (list, tuple)):
+        return [_strip_private(v) for v in obj]
+    return obj
+
+
 def short_hash(obj) -> str:
-    blob = json.dumps(obj, sort_keys=True, default=str).encode()
+    """8 hex digits of a SHA-1 of ``obj`` (keys starting with '_', e.g. file paths, left out)."""
+    blob = json.dumps(_strip_private(obj), sort_keys=True, default=str).encode()
     return hashlib.sha1(blob).hexdigest()[:8]
 
 
 def _public_scene(scene_cfg: dict) -> dict:
     return {k: v for k, v in scene_cfg.items() if not k.startswith("_")}
+
+
+# The scene-file keys each stage reads. A stage gets only these (plus the file's path for
+# messages), so that editing e.g. the camera re-runs render alone (Snakemake's params trigger).
+SCENE_KEYS = {
+    "prepare": ("source", "builtin", "transform"),
+    "cluster": ("instances",),  # reduced to the geometry (name, at, box) below
+    "fill": ("source", "builtin"),
+    "params": ("prompt", "instances"),
+    "sim": ("dynamics",),
+    "bgdo": ("dynamics",),
+    "render": ("camera",),
+    "metrics": ("prompt",),
+}
+
+
+def scene_view(scene_cfg: dict, stage: str) -> dict:
+    view = {k: copy.deepcopy(scene_cfg.get(k)) for k in SCENE_KEYS[stage] if k in scene_cfg}
+    if stage == "cluster":
+        view["instances"] = [{k: inst.get(k) for k in ("name", *_GEOMETRY_KEYS)} for inst in view.get("instances") or []]
+    view["_path"] = scene_cfg.get("_path")
+    return view
 
 
 @dataclass
@@ -118,24 +149,24 @@ def make_plan(cfg: dict, scene: str, ablation: str | None = None) -> Plan:
     device = cfg.get("device", "auto")
     p = Plan(scene, ablation)
 
-    p.cfgs["prepare"] = {"scene": pub, "prepare": sec["prepare"]}
+    p.cfgs["prepare"] = {"scene": scene_view(sc, "prepare"), "prepare": sec["prepare"]}
 
     instances = pub.get("instances") or []
     geometry = [{k: inst.get(k) for k in _GEOMETRY_KEYS} for inst in instances]
-    p.cfgs["cluster"] = {"scene": pub, "cluster": sec["cluster"]}
+    p.cfgs["cluster"] = {"scene": scene_view(sc, "cluster"), "cluster": sec["cluster"]}
     p.ids["cluster"] = "dbscan-" + short_hash([sec["cluster"], geometry, p.cfgs["prepare"]])
 
     fill = copy.deepcopy(sec["fill"])
     if fill.get("n_grid") is None:
         fill["n_grid"] = sec["sim"]["n_grid"]
-    p.cfgs["fill"] = {"scene": pub, "fill": fill}
+    p.cfgs["fill"] = {"scene": scene_view(sc, "fill"), "fill": fill}
     tag = fill["method"] if fill["method"] != "ipf" else f"ipf-{fill['occupancy']}-{'mcis' if fill['mcis'] else 'uniform'}"
     p.ids["fill"] = f"{tag}-" + short_hash([fill, p.ids["cluster"]])
 
     from .params.stage import fully_pinned
 
     material_view = {"prompt": pub.get("prompt"), "instances": instances}
-    p.cfgs["params"] = {"scene": pub, "materials": sec["materials"], "device": device}
+    p.cfgs["params"] = {"scene": scene_view(sc, "params"), "materials": sec["materials"], "device": device}
     # a scene that pins every instance leaves the material backend (vlm_params) out
     p.pinned = fully_pinned(pub)
     tag = "pinned" if p.pinned else sec["materials"]["backend"]
@@ -144,16 +175,17 @@ def make_plan(cfg: dict, scene: str, ablation: str | None = None) -> Plan:
     bgdo = sec["bgdo"]
     forward_keys = {k: bgdo[k] for k in ("key_frames", "forward_frames") if k in bgdo}
     sim_view = {"sim": sec["sim"], "dynamics": pub.get("dynamics"), "forward": forward_keys}
-    p.cfgs["sim"] = {"scene": pub, "sim": sec["sim"], "bgdo": bgdo, "device": device}
+    # the simulation reads only the key-frame settings of bgdo: other BGDO keys must not re-run it
+    p.cfgs["sim"] = {"scene": scene_view(sc, "sim"), "sim": sec["sim"], "bgdo": forward_keys, "device": device}
     p.ids["sim"] = "mpm-" + short_hash([sim_view, p.ids["fill"], p.ids["params"]])
 
     bgdo_view = {k: v for k, v in bgdo.items() if k not in ("iterations",) and k not in forward_keys}
     p.ids["bgdo"] = short_hash(bgdo_view)
-    p.cfgs["bgdo"] = {"scene": pub, "sim": sec["sim"], "bgdo": bgdo, "device": device}
+    p.cfgs["bgdo"] = {"scene": scene_view(sc, "bgdo"), "sim": sec["sim"], "bgdo": bgdo, "device": device}
     p.steps = ["it0"] + [f"it{i}-{p.ids['bgdo']}" for i in range(1, int(bgdo["iterations"]) + 1)]
 
-    p.cfgs["render"] = {"scene": pub, "render": sec["render"], "device": device}
-    p.cfgs["metrics"] = {"scene": pub, "metrics": sec["metrics"], "device": device}
+    p.cfgs["render"] = {"scene": scene_view(sc, "render"), "render": sec["render"], "device": device}
+    p.cfgs["metrics"] = {"scene": scene_view(sc, "metrics"), "metrics": sec["metrics"], "device": device}
     return p
 
 

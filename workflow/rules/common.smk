@@ -50,3 +50,36 @@ def res(stage, key):
 
 def runtime_min(stage):
     return lambda wildcards, attempt: int(res(stage, "runtime") * attempt)
+
+
+# ---- input functions of the rules
+
+def prepare_inputs(w):
+    sc = REG.plan(w.scene).cfgs["prepare"]["scene"]
+    kind, path = C.resolve_source(sc)
+    return {"source": str(path)} if kind == "file" else {}
+
+
+def sim_inputs(w):
+    plan = plan_for(w, "sim")
+    return {"particles": plan.path("particles"), "params": plan.path("params", w.step)}
+
+
+def bgdo_inputs(w):
+    plan = plan_for(w, "sim")
+    prev = P.previous_step(w.step)
+    return {"keyframes": plan.path("forward", prev), "params": plan.path("params", prev)}
+
+
+def render_inputs(w):
+    plan = REG.plan(w.target)
+    ins = {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform")}
+    cam = plan.cfgs["render"]["scene"].get("camera") or {}
+    if cam.get("mode") == "cameras_json":  # an INRIA training run's cameras.json
+        ins["cameras"] = str(C.resolve_path(cam["cameras_json"]))
+    return ins
+
+
+def report_jobs(w):
+    plan = REG.plan(w.target)
+    return [{"rule": r, "step": s, "benchmark": plan.benchmark_path(r, s)} for r, s in plan.jobs()]

@@ -1,9 +1,3 @@
-def prepare_inputs(w):
-    sc = REG.plan(w.scene).cfgs["prepare"]["scene"]
-    kind, path = C.resolve_source(sc)
-    return {"source": str(path)} if kind == "file" else {}
-
-
 rule prepare:
     input:
         unpack(prepare_inputs),

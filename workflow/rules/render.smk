@@ -1,12 +1,3 @@
-def render_inputs(w):
-    plan = REG.plan(w.target)
-    ins = {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform")}
-    cam = plan.cfgs["render"]["scene"].get("camera") or {}
-    if cam.get("mode") == "cameras_json":  # an INRIA training run's cameras.json
-        ins["cameras"] = str(C.resolve_path(cam["cameras_json"]))
-    return ins
-
-
 rule render:
     input:
         unpack(render_inputs),

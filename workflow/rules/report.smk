@@ -1,8 +1,3 @@
-def report_jobs(w):
-    plan = REG.plan(w.target)
-    return [{"rule": r, "step": s, "benchmark": plan.benchmark_path(r, s)} for r, s in plan.jobs()]
-
-
 # Time and peak memory of every stage that made a target (from the benchmark: files).
 rule stage_report:
     input:

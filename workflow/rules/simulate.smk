@@ -1,8 +1,3 @@
-def sim_inputs(w):
-    plan = plan_for(w, "sim")
-    return {"particles": plan.path("particles"), "params": plan.path("params", w.step)}
-
-
 rule forward_sim:
     input:
         unpack(sim_inputs),
@@ -20,12 +15,6 @@ rule forward_sim:
         gpu=gpu_count("forward_sim"),
     script:
         "../scripts/forward_sim.py"
-
-
-def bgdo_inputs(w):
-    plan = plan_for(w, "sim")
-    prev = P.previous_step(w.step)
-    return {"keyframes": plan.path("forward", prev), "params": plan.path("params", prev)}
 
 
 rule bgdo_update:
