@@ -96,6 +96,8 @@ def main(argv=None) -> int:
     ss.add_argument("stage", choices=STAGES)
     ss.add_argument("target")
     ss.add_argument("--step", default=None)
+    sj = sub.add_parser("jobs", help="print the (stage, step) jobs of a target in order, one per line")
+    sj.add_argument("target")
     sa = sub.add_parser("stages", help="run every stage of a target in order (skips existing outputs unless --force)")
     sa.add_argument("target")
     sa.add_argument("--force", action="store_true")
@@ -110,7 +112,11 @@ def main(argv=None) -> int:
                               "paths": {k: plan.path(k) for k in ("scene", "labels", "particles", "params0", "final", "video")},
                               "cfgs": plan.cfgs}, indent=2, default=str))
             return 0
-        jobs = [(args.stage, args.step)] if args.cmd == "stage" else plan.jobs()
+        if args.cmd == "jobs":
+            for name, step in plan.jobs():
+                print(name, step or "")
+            return 0
+        jobs = [(args.stage, args.step)] if args.cmd == "stage" else [j for j in plan.jobs() if j[0] != "stage_report"]
         summary = []
         for name, step in jobs:
             ins, outs, scfg = stage_io(plan, name, step)
