@@ -18,14 +18,14 @@ from .timestep import StepPlan, TimeStepper
 
 @dataclass(frozen=True)
 class Thresholds:
-    j_min: float = 0.05
+    j_min: float = 0.02
     j_max: float = 20.0
     max_speed: float = 100.0  # m/s
 
     @classmethod
     def from_config(cls, d: dict | None) -> "Thresholds":
         d = d or {}
-        return cls(j_min=float(d.get("j_min", 0.05)), j_max=float(d.get("j_max", 20.0)),
+        return cls(j_min=float(d.get("j_min", 0.02)), j_max=float(d.get("j_max", 20.0)),
                    max_speed=float(d.get("max_speed", 100.0)))
 
 
