@@ -1054,14 +1054,9 @@ def grid_from_config(cfg: dict, sim_config: dict | None = None) -> GridSpec:
 # ----------------------------------------------------------------------------- the stage
 def _read_params(path: str) -> dict:
     from .errors import InputError
-    from .runtime import read_json
+    from .runtime import read_json_input
 
-    try:
-        params = read_json(path)
-    except FileNotFoundError:
-        raise InputError(path, "does not exist") from None
-    except ValueError as e:
-        raise InputError(path, f"not valid JSON: {e}") from None
+    params = read_json_input(path, "params file")
     if not isinstance(params, dict) or not isinstance(params.get("instances"), list) or not params["instances"]:
         raise InputError(path, "expected an object with a non-empty 'instances' list (params.json, docs/CONTRACTS.md)")
     return params

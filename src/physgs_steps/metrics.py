@@ -15,7 +15,6 @@ cfg     {"metrics": {...}, "scene": {"prompt": ...}, "device": ...}
 """
 from __future__ import annotations
 
-import json
 import logging
 import re
 import threading
@@ -24,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ConfigError, InputError
-from .runtime import write_json
+from .runtime import read_json_input, write_json
 
 _CLIP_CACHE: dict[tuple[str, str], tuple] = {}
 _LOCK = threading.Lock()
@@ -75,11 +74,7 @@ def _device(dev: str, global_device: str | None) -> str:
 
 
 def _read_params(path: str) -> dict:
-    try:
-        with open(path) as f:
-            doc = json.load(f)
-    except (OSError, ValueError) as e:
-        raise InputError(path, f"cannot read params JSON: {e}") from None
+    doc = read_json_input(path, "params file")
     if not isinstance(doc, dict) or not isinstance(doc.get("instances"), list):
         raise InputError(path, "params.json needs an 'instances' list")
     return doc

@@ -30,7 +30,7 @@ import numpy as np
 
 from .errors import ConfigError, InputError
 from .gaussians import GaussianScene, rotmat_to_quat
-from .runtime import read_json, write_json
+from .runtime import read_json_input, write_json
 from .scene_io import load_gaussians, save_gaussians
 
 MARGIN_GRID = 64  # the wall margin is MARGIN_CELLS cells of a grid of this many cells per axis
@@ -119,12 +119,7 @@ def load_transform(path) -> SceneTransform:
     Raises:
         InputError: missing keys, wrong shapes, a non-rotation matrix or a scale <= 0.
     """
-    try:
-        rec = read_json(path)
-    except FileNotFoundError:
-        raise InputError(path, "transform file not found") from None
-    except ValueError as e:
-        raise InputError(path, f"not valid JSON: {e}") from None
+    rec = read_json_input(path, "transform file")
     missing = [k for k in ("scale", "rotation", "src_center", "sim_center") if k not in rec]
     if missing:
         raise InputError(path, f"transform is missing keys {missing}")

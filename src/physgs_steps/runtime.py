@@ -21,7 +21,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from .errors import PhysGSError
+from .errors import InputError, PhysGSError
 
 LOG_FORMAT = "%(asctime)s %(levelname)s [%(name)s] %(message)s"
 
@@ -131,6 +131,18 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
 def read_json(path: str | os.PathLike) -> Any:
     with open(path) as f:
         return json.load(f)
+
+
+def read_json_input(path: str | os.PathLike, what: str = "file") -> Any:
+    """Read a JSON input of a stage; a missing, unreadable or malformed file is an
+    :class:`InputError` naming it (``what`` says which file, e.g. "params file")."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise InputError(path, f"{what} not found (does not exist)") from None
+    except (OSError, ValueError) as e:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise InputError(path, f"not valid JSON: {e}") from None
 
 
 def _json_default(o: Any) -> Any:

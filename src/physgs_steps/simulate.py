@@ -27,7 +27,7 @@ import h5py
 import numpy as np
 
 from .errors import ConfigError, InputError, SimulationError
-from .runtime import atomic_path, peak_rss_mb, read_json
+from .runtime import atomic_path, peak_rss_mb, read_json_input
 from .mpm.dynamics import Dynamics, describe_counts
 from .mpm.materials import Material
 from .mpm.runner import RunResult, run_frames
@@ -73,12 +73,7 @@ def load_materials(path: str | Path, labels_present: np.ndarray) -> tuple[dict, 
     """Read params.json; return (params dict, materials, labels) for the labels present in the
     particles, in label order.  Raises InputError naming the file and entry."""
     path = Path(path)
-    if not path.exists():
-        raise InputError(path, "params file does not exist")
-    try:
-        params = read_json(path)
-    except (OSError, json.JSONDecodeError) as e:
-        raise InputError(path, f"not valid JSON: {e}") from None
+    params = read_json_input(path, "params file")
     if not isinstance(params, dict) or not isinstance(params.get("instances"), list):
         raise InputError(path, "must be an object with an 'instances' list")
     by_label = {}

@@ -15,7 +15,6 @@ instead).
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from .. import materials_kb
 from ..errors import ConfigError, InputError
-from ..runtime import write_json
+from ..runtime import read_json_input, write_json
 from . import prior as prior_mod
 from .prompt import BackendError, Question, ask
 from .validate import asked_keys, check_pins, check_velocity, finalize_answer, is_fully_pinned, merge_pins
@@ -239,11 +238,7 @@ def _read_labels(path: str) -> np.ndarray:
 
 
 def _read_json(path: str) -> dict:
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except (OSError, ValueError) as e:
-        raise InputError(path, f"cannot read JSON: {e}") from None
+    return read_json_input(path, "clusters file")
 
 
 def _label_config_index(clusters: dict, n_entries: int, path: str = "clusters.json") -> list[int | None]:

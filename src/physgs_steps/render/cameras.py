@@ -9,7 +9,6 @@ All positions are in the scene's *source* frame (the frame of the input ``.ply``
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, InputError, RenderError
+from ..runtime import read_json_input
 
 
 @dataclass(frozen=True)
@@ -184,13 +184,7 @@ def load_inria_cameras(path) -> list[Camera]:
     image centre (as in the INRIA renderer).
     """
     path = Path(path)
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except FileNotFoundError:
-        raise InputError(path, "cameras file does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(path, f"not valid JSON: {e}") from None
+    data = read_json_input(path, "cameras file")
     if not isinstance(data, list) or not data:
         raise InputError(path, "expected a non-empty JSON list of camera entries")
     cams = []
