@@ -104,6 +104,17 @@ involve uses the key frames that were stored, and keeps its E if none after fram
 way: the bear at 30 Pa collapses at impact, its last stable frame (still falling) shows
 delta = 0.04 and BGDO would lower E (30 -> 14 -> 6.5 Pa).
 
+Robustness (``python benchmarks/bgdo_robustness.py --scenes bear duck_stone bread``; 6000
+gaussians, n_grid 32, 90 frames, sim.stability.j_min 0.02), E0 -> E1 -> E2 in Pa, all final
+simulations stable:
+
+    bear  jelly  [1e4, 5e5]   3e10 -> 3e7 -> 3e4    3e8 -> 3e5 -> 1.53e5   30 -> 3e4 -> 2.3e4
+    bread bread  [1e4, 5e5]   3e10 -> 3e7 -> 3e4    3e8 -> 3e5 -> 1.55e5   30 -> 3e4 -> 1.47e4
+    duck  rubber [1e5, 1e6]   3e10 -> 3e7 -> 3e4 x  3e8 -> 3e5 -> 1.49e5   30 -> 30 -> 3e4 x
+    stone stone  [5e6, 1e8]   3e10 -> 3e7 -> 3e7    3e8 -> 3e5 -> 1.44e5 x 30 -> 3e4 -> 3e4 x
+
+(x: outside the band.)
+
 Limitations (measured: benchmarks/bgdo_robustness.py, benchmarks/bgdo_stress_vs_E.py)
 -------------------------------------------------------------------------------------
 * The fast over-stiff correction relies on the forward run exploding (the paper's "abnormal
