@@ -6,7 +6,7 @@ command (`snakemake --workflow-profile profiles/slurm ...`) then regenerates two
 videos, the same targets are made by a local run in another folder, and the two are compared.
 Only the daemons started here are stopped, by their PIDs, also when the test fails.
 
-Settings that only this test needs (docs/CLUSTER.md explains them): the config at
+Settings that only this test needs (README.md, "Running on a cluster", explains them): the config at
 /etc/slurm/slurm.conf (a symlink to the throwaway one, removed afterwards), and on the
 command line --slurm-status-command squeue, --slurm-no-account,
 --slurm-init-seconds-before-status-checks 3 (plus --slurm-keep-successful-logs to check them).
@@ -408,7 +408,7 @@ def test_workflow_through_slurm_matches_local_run(slurm, tmp_path):
     snakemake(local, [*TARGETS, "--cores", "2", "--configfile", TEST_CONFIG], LOCAL_TIMEOUT_S, env)
     t1 = time.monotonic()
     out = snakemake(remote, [*TARGETS, "--workflow-profile", "profiles/slurm", "--configfile", TEST_CONFIG,
-                             # test-only settings (docs/CLUSTER.md: a real cluster needs none of them)
+                             # test-only settings (README "Running on a cluster": a real cluster needs none)
                              "--slurm-status-command", "squeue", "--slurm-no-account",
                              "--slurm-init-seconds-before-status-checks", "3",
                              "--slurm-keep-successful-logs", "--latency-wait", "10"],

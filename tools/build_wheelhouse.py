@@ -3,7 +3,7 @@
 
 Compute nodes of a cluster often have no internet access. Run this script on a machine that
 has it (a login node, a laptop with Linux), copy the result to the cluster, and install with
-``pip install --no-index --find-links <wheelhouse> ...`` (docs/CLUSTER.md, "Air-gapped nodes").
+``pip install --no-index --find-links <wheelhouse> ...`` (README.md, "Air-gapped nodes").
 
 What it does:
 1. builds the project itself as a wheel (pure Python, built here);
