@@ -326,7 +326,7 @@ def _make_update(el: type, pl: type):
         else:
             J = F_new.determinant()
         tau = ti.Matrix.zero(ti.f32, 3, 3)
-        if ti.static(svd_ok):
+        if ti.static(svd_ok and M.takes_svd(el)):
             tau = el.kirchhoff_svd(F_new, U2, sig2, V2, J, mu, lam)
         else:
             tau = el.kirchhoff(F_new, J, mu, lam)

@@ -99,8 +99,9 @@ class Elasticity:
     """Base of the elasticity models.
 
     Hooks: ``kirchhoff(F, J, mu, lam)`` (no SVD at hand) and
-    ``kirchhoff_svd(F, U, sig, V, J, mu, lam)`` (a valid SVD of F at hand).  ``needs_svd``:
-    the model cannot work without the SVD, so the solver computes one for it.
+    ``kirchhoff_svd(F, U, sig, V, J, mu, lam)`` (a valid SVD of F at hand; optional: a model
+    without it gets ``kirchhoff`` also when an SVD is at hand, see :func:`takes_svd`).
+    ``needs_svd``: the model cannot work without the SVD, so the solver computes one for it.
     """
 
     name = ""
@@ -143,10 +144,6 @@ class NeoHookean(Elasticity):
     def kirchhoff(F, J, mu, lam):
         return mu * (F @ F.transpose() - _eye()) + lam * ti.log(ti.max(J, LOG_FLOOR)) * _eye()
 
-    @staticmethod
-    @ti.func
-    def kirchhoff_svd(F, U, sig, V, J, mu, lam):
-        return NeoHookean.kirchhoff(F, J, mu, lam)
 
 
 class StVKHencky(Elasticity):
@@ -175,10 +172,6 @@ class Volume(Elasticity):
         kappa = 2.0 / 3.0 * mu + lam
         return kappa * (J - ti.pow(J, 1.0 - VOLUME_GAMMA)) * _eye()
 
-    @staticmethod
-    @ti.func
-    def kirchhoff_svd(F, U, sig, V, J, mu, lam):
-        return Volume.kirchhoff(F, J, mu, lam)
 
 
 class FluidElasticity(Elasticity):
@@ -192,10 +185,6 @@ class FluidElasticity(Elasticity):
     def kirchhoff(F, J, mu, lam):
         return lam * J * (J - 1.0) * _eye()
 
-    @staticmethod
-    @ti.func
-    def kirchhoff_svd(F, U, sig, V, J, mu, lam):
-        return FluidElasticity.kirchhoff(F, J, mu, lam)
 
 
 # ============================================================================ plasticity
@@ -297,6 +286,11 @@ class FluidPlasticity(Plasticity):
 
 ELASTICITY = {c.name: c for c in (FixedCorotated, NeoHookean, StVKHencky, Volume, FluidElasticity)}
 PLASTICITY = {c.name: c for c in (Identity, JClamp, VonMises, DruckerPrager, FluidPlasticity)}
+
+
+def takes_svd(el: type) -> bool:
+    """Whether the elasticity model has a ``kirchhoff_svd`` hook that uses a given SVD."""
+    return any("kirchhoff_svd" in vars(c) for c in el.__mro__ if c is not Elasticity)
 
 
 def svd_before_return_map(el: type, pl: type) -> bool:
