@@ -1,12 +1,13 @@
 """BGDO robustness study (paper Sec. 5.3 "W/o BGDO"): start built-in scenes from corrupted
 Young's moduli and let BGDO correct them.
 
-    python benchmarks/bgdo_robustness.py [--scenes bear] [--E0 3e10 3e8 30] [--iterations 2]
-        [--n-gaussians 6000] [--frames 90] [--forward-frames 90] [--bgdo KEY=VALUE ...]
+    python benchmarks/bgdo_robustness.py [--scenes bear] [--E0 3e10 3e8 30 kb] [--iterations 2]
+        [--n-gaussians 6000] [--frames 90] [--forward-frames 90] [--bgdo KEY=VALUE ...] [--sim KEY=VALUE ...]
         [--no-baseline] [--out benchmarks/out/bgdo_robustness]
 
 For every scene the library stages prepare -> cluster -> fill -> vlm_params run once (prior
-backend, no network). Then for every E0 every instance's E is set to E0 and the chain
+backend, no network). Then for every E0 every instance's E is set to E0 (``kb``: each
+instance keeps the knowledge-base E of the material stage, the workflow's own start) and the chain
 forward_sim -> bgdo_update (x iterations) -> final_sim runs through the same stage functions
 the workflow calls (physgs_steps.simulate.run_forward / run_final, physgs_steps.bgdo.run).
 "Without BGDO" (--no-baseline to skip) runs final_sim at E0 directly.
@@ -48,6 +49,15 @@ def _parse_value(v: str):
         return v
 
 
+def _parse_e0(v: str):
+    if v == "kb":
+        return v
+    try:
+        return float(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--E0 takes numbers (Pa) or kb, got {v!r}") from None
+
+
 def make_config(args, scenes_dir: Path) -> dict:
     from physgs_steps import config as C
 
@@ -61,6 +71,9 @@ def make_config(args, scenes_dir: Path) -> dict:
     for kv in args.bgdo:
         key, _, val = kv.partition("=")
         b[key] = _parse_value(val)
+    for kv in args.sim:
+        key, _, val = kv.partition("=")
+        cfg["sim"][key] = _parse_value(val)
     return C.validate_config(cfg, "bgdo_robustness")
 
 
@@ -115,21 +128,34 @@ def final_metrics(path: str, particles: str) -> list[dict]:
     return out
 
 
-def run_case(plan, E0: float, args, log, root: Path) -> dict:
-    """One corrupted start: forward/bgdo iterations then the final simulation."""
+def _start_params(plan, E0):
+    """params_0 with every E set to E0 (a number), or as the material stage wrote it ("kb")."""
+    from physgs_steps.runtime import read_json
+
+    p0 = read_json(plan.path("params0"))
+    if E0 != "kb":
+        for inst in p0["instances"]:
+            inst["E"] = float(E0)
+            inst["provenance"] = {"source": "corrupted", "E0": float(E0), "previous": inst.get("provenance")}
+    return p0
+
+
+def _e0_name(E0) -> str:
+    return "kb" if E0 == "kb" else f"{float(E0):g}"
+
+
+def run_case(plan, E0, args, log, root: Path) -> dict:
+    """One start (corrupted E0 or "kb"): forward/bgdo iterations then the final simulation."""
     from physgs_steps import bgdo, simulate
     from physgs_steps.runtime import peak_rss_mb, read_json, write_json
 
-    d = root / plan.scene / f"E0_{E0:g}"
+    d = root / plan.scene / f"E0_{_e0_name(E0)}"
     d.mkdir(parents=True, exist_ok=True)
-    p0 = read_json(plan.path("params0"))
-    for inst in p0["instances"]:
-        inst["E"] = float(E0)
-        inst["provenance"] = {"source": "corrupted", "E0": float(E0), "previous": inst.get("provenance")}
+    p0 = _start_params(plan, E0)
     write_json(d / "params0.json", p0)
     particles = plan.path("particles")
-    Es = [[float(E0)] * len(p0["instances"])]
-    secs, fwd = {}, []
+    Es = [[float(i["E"]) for i in p0["instances"]]]
+    secs, fwd, rules = {}, [], []
     for it in range(args.iterations):
         t0 = time.perf_counter()
         r = simulate.run_forward({"particles": particles, "params": str(d / f"params{it}.json")},
@@ -140,13 +166,17 @@ def run_case(plan, E0: float, args, log, root: Path) -> dict:
         bgdo.run({"keyframes": str(d / f"forward{it}.h5"), "params": str(d / f"params{it}.json")},
                  {"params": str(d / f"params{it + 1}.json")}, plan.cfgs["bgdo"], log)
         secs[f"bgdo{it + 1}"] = round(time.perf_counter() - t0, 2)
-        Es.append([i["E"] for i in read_json(d / f"params{it + 1}.json")["instances"]])
+        pj = read_json(d / f"params{it + 1}.json")
+        Es.append([i["E"] for i in pj["instances"]])
+        rules.append([f"{r.get('fate')}: {r.get('rule')}" + (" (ceiling)" if r.get("capped_by_ceiling") else "")
+                      for r in pj["bgdo"]["instances"]])
     final = run_final(plan, str(d / f"params{args.iterations}.json"), str(d / "final.h5"), log)
     secs["final"] = final.pop("seconds")
     last = read_json(d / f"params{args.iterations}.json")
     records = (last.get("bgdo") or {}).get("instances") or []
-    return {"E0": E0, "E": Es, "forward": fwd, "final": final, "seconds": secs, "peak_rss_mb": round(peak_rss_mb(), 1),
-            "bgdo_last": [{k: r.get(k) for k in ("G", "eta", "E_hat", "reference_pressure", "clipped")} for r in records],
+    return {"E0": E0, "E": Es, "rules": rules, "forward": fwd, "final": final, "seconds": secs, "peak_rss_mb": round(peak_rss_mb(), 1),
+            "bgdo_last": [{k: r.get(k) for k in ("G", "eta", "E_hat", "reference_pressure", "delta_target", "ceiling",
+                                                 "static_stress", "clipped", "capped_by_ceiling")} for r in records],
             "instances": [{"label": int(i["label"]), "name": i.get("name"), "material": i.get("material")}
                           for i in last["instances"]]}
 
@@ -165,15 +195,13 @@ def run_final(plan, params: str, out: str, log) -> dict:
     return res
 
 
-def baseline(plan, E0: float, log, root: Path) -> dict:
-    """Without BGDO: the final simulation straight from the corrupted E0."""
-    from physgs_steps.runtime import read_json, write_json
+def baseline(plan, E0, log, root: Path) -> dict:
+    """Without BGDO: the final simulation straight from E0."""
+    from physgs_steps.runtime import write_json
 
-    d = root / plan.scene / f"E0_{E0:g}"
+    d = root / plan.scene / f"E0_{_e0_name(E0)}"
     d.mkdir(parents=True, exist_ok=True)
-    p0 = read_json(plan.path("params0"))
-    for inst in p0["instances"]:
-        inst["E"] = float(E0)
+    p0 = _start_params(plan, E0)
     write_json(d / "params_nobgdo.json", p0)
     return run_final(plan, str(d / "params_nobgdo.json"), str(d / "final_nobgdo.h5"), log)
 
@@ -238,9 +266,21 @@ def band_of(material):
         return None
 
 
+def _short_rule(text: str) -> str:
+    """'ok: signals' -> 'signals', 'exploded: min(E_cap, ...)' -> 'exploded->static', ..."""
+    fate, _, rule = text.partition(": ")
+    if rule.startswith("exploded"):
+        short = "exploded->static" if "static" in rule else "exploded->E_cap"
+    elif fate == "broken":
+        short = "broken"
+    else:
+        short = rule.split(":")[0].replace(" (ceiling)", "")
+    return short + (" (ceiling)" if "(ceiling)" in text else "")
+
+
 def print_table(rows: list[dict], iterations: int) -> None:
     hdr = ["scene", "instance (material)", "band [Pa]", " -> ".join(f"E{i}" for i in range(iterations + 1)),
-           "in band", "final", "|F-I| last", "|s-1| last", "J min", "disp", "w/o BGDO", "seconds"]
+           "in band", "final", "|F-I| last", "|s-1| last", "J min", "disp", "w/o BGDO", "BGDO rule", "seconds"]
     lines = [hdr]
     for r in rows:
         case = r["case"]
@@ -261,6 +301,7 @@ def print_table(rows: list[dict], iterations: int) -> None:
                 f"{fm['J_min']:.3f}" if fm else "-",
                 f"{fm['mean_displacement']:.3f}" if fm else "-",
                 "-" if base is None else ("stable" if base["stable"] else "unstable"),
+                ", ".join(_short_rule(it[k]) for it in case.get("rules", [])),
                 " ".join(f"{s}={v:g}" for s, v in case["seconds"].items()),
             ])
     widths = [max(len(str(l[i])) for l in lines) for i in range(len(hdr))]
@@ -273,12 +314,14 @@ def print_table(rows: list[dict], iterations: int) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["bear"])
-    ap.add_argument("--E0", nargs="+", type=float, default=[3e10, 3e8, 30.0])
+    ap.add_argument("--E0", nargs="+", type=_parse_e0, default=[3e10, 3e8, 30.0],
+                    help="start moduli in Pa, or kb for the material stage's own E")
     ap.add_argument("--iterations", type=int, default=2)
     ap.add_argument("--n-gaussians", type=int, default=6000)
     ap.add_argument("--frames", type=int, default=90, help="frames of the final simulation (sim.n_frames)")
     ap.add_argument("--forward-frames", type=int, default=90, help="frames of each forward simulation")
     ap.add_argument("--bgdo", nargs="*", default=[], help="bgdo config overrides KEY=VALUE (YAML values)")
+    ap.add_argument("--sim", nargs="*", default=[], help="sim config overrides KEY=VALUE (e.g. n_grid=64)")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     ap.add_argument("--no-baseline", action="store_true", help="skip the final simulation without BGDO")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 avoids oversubscription)")
@@ -307,7 +350,7 @@ def main(argv=None) -> int:
             base = None if args.no_baseline else baseline(plan, E0, log, out / "cases")
             rows.append({"scene": scene, "E0": E0, "case": case, "baseline": base, "prepare_seconds": prep,
                          "wall_seconds": round(time.perf_counter() - t0, 1)})
-            print(f"[{scene} E0={E0:g}] E: {case['E']}  final stable: {case['final']['stable']}  "
+            print(f"[{scene} E0={_e0_name(E0)}] E: {case['E']}  final stable: {case['final']['stable']}  "
                   f"({rows[-1]['wall_seconds']} s)", flush=True)
     print()
     print(f"BGDO robustness: variant {cfg['bgdo']['variant']}, scaling {cfg['bgdo']['scaling']}, "
@@ -317,12 +360,12 @@ def main(argv=None) -> int:
     print_table(rows, args.iterations)
     mem = None
     for r in rows:  # memory of one BGDO update, from the first stable forward run with all its key frames
-        d = out / "cases" / r["scene"] / f"E0_{r['E0']:g}"
+        d = out / "cases" / r["scene"] / f"E0_{_e0_name(r['E0'])}"
         for it in range(args.iterations):
             if r["case"]["forward"][it]["stable"]:
                 plan = P.make_plan(cfg, r["scene"])
                 mem = measure_memory(str(d / f"forward{it}.h5"), str(d / f"params{it}.json"), plan.cfgs["bgdo"])
-                mem["case"] = f"{r['scene']} E0={r['E0']:g} forward{it}"
+                mem["case"] = f"{r['scene']} E0={_e0_name(r['E0'])} forward{it}"
                 break
         if mem:
             break

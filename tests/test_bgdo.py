@@ -377,7 +377,8 @@ def scales(pressure=1e4, modulus=1e5, sdelta=0.1):
 
 
 def test_update_algorithm1_by_hand():
-    cfg = bcfg()
+    """The appendix's literal deformation term (deformation_signal difference)."""
+    cfg = bcfg(deformation_signal="difference")
     E = 2e4
     frames = [[frame(0.0, 0.0, frame_=0)], [frame(0.5, 0.3, frame_=12)], [frame(0.2, 0.05, frame_=23)]]
     new, rec = B.bgdo_update(np.log([E]), frames, scales(), cfg)
@@ -389,6 +390,29 @@ def test_update_algorithm1_by_hand():
     assert new[0] == pytest.approx(math.log(E) - G)
     assert rec[0]["E_after"] == pytest.approx(E * math.exp(-G))
     assert rec[0]["in_band_before"] is True
+
+
+def test_update_log_ratio_by_hand():
+    """Default: stress term over all key frames, log(delta / delta_target) over the frames after
+    the rest state, which is the Newton step of log E for a linear material (delta ~ 1 / E)."""
+    cfg = bcfg()
+    E = 2e4
+    frames = [[frame(0.0, 0.0, frame_=0)], [frame(0.5, 0.3, frame_=12)], [frame(0.2, 0.05, frame_=23)]]
+    new, rec = B.bgdo_update(np.log([E]), frames, scales(), cfg)
+    eta = min(1.0, 0.1 * math.log1p(E / 1e4))
+    G = eta * (0.0 + 0.5 + 0.2) / 3 - (1 - eta) * (math.log(0.3 / 0.1) + math.log(0.05 / 0.1)) / 2
+    assert rec[0]["G"] == pytest.approx(G) and new[0] == pytest.approx(math.log(E) - G)
+    assert rec[0]["terms"][0]["log_ratio"] is None  # frame 0: rest state
+    # Newton property: with eta = 0 one step lands where a 1/E material meets the target
+    E1 = 1e3
+    d1 = 0.1 * 50.0  # deforms 50x the target at E1 -> the target is met at 50 E1
+    _, r = B.bgdo_update(np.log([E1]), [[frame(0.0, 0.0)], [frame(0.0, d1, frame_=5)]], scales(),
+                         bcfg(eta_rule="constant", eta_constant=0.0))
+    assert r[0]["E_after"] == pytest.approx(50 * E1)
+    # a frame after 0 with no deformation is floored (finite step), never -inf
+    _, r = B.bgdo_update(np.log([E1]), [[frame(0.0, 0.0)], [frame(0.0, 0.0, frame_=5)]], scales(),
+                         bcfg(eta_rule="constant", eta_constant=0.0, max_step=None))
+    assert r[0]["E_after"] == pytest.approx(E1 * B.DELTA_FLOOR)
 
 
 def test_update_main_text_by_hand():
@@ -415,7 +439,16 @@ def test_update_directions_clip_and_exploded():
     # exploded particles: infinite stress signal, step clipped to max_step
     _, r = B.bgdo_update(np.log([3e10]), [[frame(math.inf, None, exploded=5)]], scales(), cfg)
     assert r[0]["clipped"] and r[0]["G"] == pytest.approx(cfg["max_step"])
-    assert r[0]["E_after"] == pytest.approx(3e10 / 1000.0)
+    assert r[0]["E_after"] == pytest.approx(3e10 * math.exp(-cfg["max_step"]))
+    # the solver ceiling: an increase stops at E_cap; an instance already above it is not raised
+    lim = {"ceiling": np.array([5e3])}
+    _, r = B.bgdo_update(np.log([30.0]), [[frame(0.0, 0.0)], [frame(0.0, 100.0, frame_=3)]], scales(), cfg, limits=lim)
+    assert r[0]["E_after"] == pytest.approx(5e3) and r[0]["capped_by_ceiling"]
+    _, r = B.bgdo_update(np.log([1e4]), [[frame(0.0, 0.0)], [frame(0.0, 100.0, frame_=3)]], scales(), cfg, limits=lim)
+    assert r[0]["E_after"] == pytest.approx(1e4) and r[0]["capped_by_ceiling"]
+    _, r = B.bgdo_update(np.log([30.0]), [[frame(0.0, 0.0)], [frame(0.0, 100.0, frame_=3)]], scales(),
+                         bcfg(ceiling=False), limits=lim)
+    assert r[0]["E_after"] > 5e3 and not r[0]["capped_by_ceiling"]
     # no limit and no particles: E unchanged with a note
     _, r = B.bgdo_update(np.log([1e5]), [[{**frame(0.0, 0.0), "g_tilde": None, "n_particles": 0}]], scales(), cfg)
     assert r[0]["E_after"] == pytest.approx(1e5) and "unchanged" in r[0]["note"]
@@ -426,7 +459,7 @@ def test_si_scaling_reproduces_the_units_problem():
     term can only lower E, even when the material is far too soft."""
     cfg = bcfg(scaling="si")
     sc = B.reference_scales([inst(0, "fixed_corotated", "identity", E=1e5)], cfg)
-    assert sc.pressure[0] == 1.0 and sc.deformation == 1.0
+    assert sc.pressure[0] == 1.0 and sc.s_delta(0) == 1.0
     eta, _ = B.eta_value(3e4, 1.0, cfg)
     assert eta == 1.0
     # an over-soft material (huge deformation) with a stress of a few hundred Pa
@@ -446,9 +479,19 @@ def test_reference_scales_from_knowledge_base():
     assert sc.pressure[0] == pytest.approx(0.1 * math.sqrt(lo * hi))
     assert sc.band[0] == [lo, hi] and sc.band[1] is None
     assert sc.modulus[1] == cfg["reference_modulus"] and "not in the knowledge base" in sc.source[1]
-    assert sc.deformation == pytest.approx(0.1)
+    # per-material target: rho g h_ref / E_ref (the instance's density; h_ref 0.3 m)
+    rho = 1000.0  # inst() density
+    assert sc.delta_target(0) == pytest.approx(rho * 9.81 * cfg["reference_height"] / math.sqrt(lo * hi))
+    assert sc.delta_target(1) == pytest.approx(rho * 9.81 * cfg["reference_height"] / cfg["reference_modulus"])
+    assert sc.s_delta(0) == sc.delta_target(0)
+    slo, shi = materials_kb.get_material("stone")["E_range"]
+    st = B.reference_scales([inst(0, "fixed_corotated", "identity", material="stone")], cfg)
+    assert st.delta_target(0) == pytest.approx(rho * 9.81 * cfg["reference_height"] / math.sqrt(slo * shi))
+    assert st.delta_target(0) < 1e-3 < sc.delta_target(0)
+    fixed = B.reference_scales([inst(0, "fixed_corotated", "identity", material="stone")], bcfg(delta_target=0.1))
+    assert fixed.delta_target(0) == 0.1
     sc2 = B.reference_scales([inst(0, "fixed_corotated", "identity")], bcfg(reference_pressure=50.0, deformation_scale=1.0))
-    assert sc2.pressure[0] == 50.0 and sc2.deformation == 1.0
+    assert sc2.pressure[0] == 50.0 and sc2.s_delta(0) == 1.0
 
 
 def test_key_frame_indices():
@@ -514,7 +557,11 @@ def test_stage_updates_params_and_records(stage_files):
     out = json.loads((d / "out" / "params.json").read_text())
     E0, E1 = [i["E"] for i in out["instances"]]
     assert E0 > 30.0, "over-soft instance must get stiffer"
-    assert E1 == pytest.approx(3e10 / 1000.0), "exploded instance takes the largest allowed step down"
+    step = C.section_defaults("bgdo")["max_step"]
+    assert E1 == pytest.approx(3e10 * math.exp(-step)), "exploded particles: the largest allowed step down"
+    rec0 = out["bgdo"]
+    assert len(rec0["static_stress"]) == 2 and len(rec0["solver_ceiling"]) == 2
+    assert all(v > 0 for v in rec0["static_stress"]) and all(v > 0 for v in rec0["solver_ceiling"])
     assert out["instances"][0]["provenance"]["source"] == "bgdo"
     assert out["instances"][0]["provenance"]["previous"] == {"source": "prior"}
     rec = out["bgdo"]
@@ -571,7 +618,8 @@ def test_stage_rejects_bad_inputs(stage_files, tmp_path):
 
 def test_schema_defaults_and_validation():
     d = C.section_defaults("bgdo")
-    assert d["iterations"] == 2 and d["variant"] == "algorithm1" and d["delta_target"] == 0.1
+    assert d["iterations"] == 2 and d["variant"] == "algorithm1" and d["delta_target"] is None
+    assert d["deformation_signal"] == "log_ratio" and d["failure_rule"] == "static_load" and d["ceiling"] is True
     schema = C.load_schema("bgdo.schema.yaml")
     for key, spec in schema["properties"].items():
         assert "description" in spec and "default" in spec, key
@@ -625,7 +673,8 @@ def test_unstable_run_exploded_and_broken():
     assert assembled[2][0]["g_tilde"] == math.inf and assembled[2][1]["delta"] == pytest.approx(info["delta_broken"])
     assert assembled[2][2]["weight"] == 0 and assembled[0][2]["no_evidence"]
     sc = B.Scales(np.array([7e3, 7e3, 7e3]), np.array([7e4] * 3), 0.1, ["t"] * 3, [[1e4, 5e5]] * 3)
-    new, rec = B.bgdo_update(B.log_E_from_instances(insts), assembled, sc, bcfg())
+    old = bcfg(failure_rule="max_step", deformation_signal="difference", max_step=math.log(1000.0))
+    new, rec = B.bgdo_update(B.log_E_from_instances(insts), assembled, sc, old)
     assert rec[0]["E_after"] == pytest.approx(3e7) and rec[0]["clipped"]
     eta = min(1.0, 0.1 * math.log1p(30.0 / 7e3))
     G = (-(1 - eta) * (0.0 - 0.1) / 0.1 + 2 * (eta * 0.1 - (1 - eta) * (info["delta_broken"] - 0.1) / 0.1)) / 3
@@ -636,7 +685,7 @@ def test_unstable_run_exploded_and_broken():
     late["frames"].insert(1, ("74", 74, 74 / 30, 1e-3, []))
     info_late = B.unstable_run_info(late, insts, grid, 1.0)
     fr3 = [[_row(0.0, 0.0)] * 3, [_row(0.2)] * 3, [_row(0.04)] * 3]
-    _, rec3 = B.bgdo_update(B.log_E_from_instances(insts), B.assemble_frames(fr3, late, info_late), sc, bcfg())
+    _, rec3 = B.bgdo_update(B.log_E_from_instances(insts), B.assemble_frames(fr3, late, info_late), sc, old)
     eta2 = min(1.0, 0.1 * math.log1p(5e4 / 7e3))
     G2 = (-(1 - eta2) * (0.0 - 0.1) / 0.1 + (eta2 * 0.1 - (1 - eta2) * (0.2 - 0.1) / 0.1)) / 2
     assert rec3[2]["G"] == pytest.approx(G2)
@@ -651,3 +700,59 @@ def test_unstable_run_exploded_and_broken():
 def test_infinite_step_without_limit_is_an_error():
     with pytest.raises(Exception, match="max_step"):
         B.bgdo_update(np.log([3e10]), [[frame(math.inf, None, exploded=5)]], scales(), bcfg(max_step=None))
+
+
+def test_static_stress_and_solver_ceiling_by_hand():
+    grid = B.GridSpec(32, domain_size=2.0, gravity=(0.0, 0.0, -9.8))
+    x = np.array([[0.5, 0.5, 0.2], [0.5, 0.5, 0.45], [0.2, 0.2, 0.6], [0.2, 0.2, 0.7], [np.nan, 0, 0]])
+    label = np.array([0, 0, 1, 1, 1])
+    insts = [inst(0, "fixed_corotated", "identity", E=1e5), inst(1, "fixed_corotated", "identity", E=1e5)]
+    insts[0]["density"], insts[1]["density"] = 1000.0, 2500.0
+    s = B.static_stress(x, label, insts, grid)
+    assert s[0] == pytest.approx(1000 * 9.8 * 0.25 * 2.0) and s[1] == pytest.approx(2500 * 9.8 * 0.1 * 2.0)
+    assert B.static_stress(x, label, insts, B.GridSpec(32, gravity=(0.0, 0.0, 0.0))).tolist() == [0.0, 0.0]
+    insts[0]["nu"] = 0.3
+    cap = B.solver_ceiling(insts, {"cfl": 0.5, "fps": 30, "max_substeps": 200}, grid)
+    c = 0.5 * (2.0 / 32) / (1 / 30 / 200)
+    assert cap[0] == pytest.approx(1000 * c ** 2 * 1.3 * 0.4 / 0.7)
+    # at E_cap the P-wave speed is exactly cfl dx / dt_min
+    lam, mu = 0.3 * cap[0] / (1.3 * 0.4), cap[0] / 2.6
+    assert math.sqrt((lam + 2 * mu) / 1000) == pytest.approx(c)
+    assert B.solver_ceiling(insts, {"cfl": 0.5, "fps": 30, "max_substeps": 800}, grid)[0] == pytest.approx(16 * cap[0])
+
+
+def test_unstable_run_static_load_rule():
+    """Default failure rule: an exploded instance goes to min(E_cap, static stress / delta_target);
+    a broken one counts its missing key frames with the static strain when that exceeds the
+    collapse; an uninvolved instance that cannot carry its own weight is broken too."""
+    insts = [inst(0, "fixed_corotated", "identity", E=3e10), inst(1, "fixed_corotated", "identity", E=30.0),
+             inst(2, "fixed_corotated", "identity", E=30.0), inst(3, "fixed_corotated", "identity", E=5e4)]
+    for i, n in zip(insts, ("stone", "duck", "bear", "mat")):
+        i["name"] = n
+    meta = _meta("unstable ... in instance 'duck' (rubber ...)", dt_fail=1e-3)
+    grid = B.GridSpec(32)
+    info = B.unstable_run_info(meta, insts, grid, cfl_limit=1.0)
+    assert info["fate"] == ["exploded", "broken", "ok", "ok"]
+    sstress = np.array([5e3, 2e3, 4e3, 100.0])
+    info["static_delta"] = (sstress / np.array([3e10, 30.0, 30.0, 5e4])).tolist()
+    frames = [[_row(0.0, 0.0)] * 4, [_row(0.04)] * 4]
+    assembled = B.assemble_frames(frames, meta, info)
+    assert info["fate"] == ["exploded", "broken", "broken", "ok"] and "static strain" in info["fate_reason"][2]
+    assert assembled[2][1]["delta"] == pytest.approx(2e3 / 30.0) and assembled[2][2]["delta"] == pytest.approx(4e3 / 30.0)
+    assert assembled[0][3]["no_evidence"]
+    sc = B.Scales(np.array([7e3] * 4), np.array([7e4] * 4), np.array([0.1] * 4), ["t"] * 4, [[1e4, 5e5]] * 4,
+                  np.array([1e-3, 0.1, 0.1, 0.1]))
+    ceiling = np.array([2e7, 1e7, 1e7, 1e7])
+    _, rec = B.bgdo_update(B.log_E_from_instances(insts), assembled, sc, bcfg(),
+                           limits={"ceiling": ceiling, "static_stress": sstress, "fate": info["fate"]})
+    assert rec[0]["E_after"] == pytest.approx(min(2e7, 5e3 / 1e-3)) and rec[0]["rule"].startswith("exploded")
+    eta = min(1.0, 0.1 * math.log1p(30.0 / 7e3))
+    # stress: frame 0 (0.0) and the 2 missing frames (last stable 0.1); deformation: the missing frames
+    G1 = eta * (0.0 + 0.1 + 0.1) / 3 - (1 - eta) * math.log((2e3 / 30.0) / 0.1)
+    assert rec[1]["G"] == pytest.approx(G1) and rec[1]["E_after"] == pytest.approx(30.0 * math.exp(-G1))
+    assert rec[2]["E_after"] > rec[1]["E_after"] > 1e4
+    assert rec[3]["E_after"] == pytest.approx(5e4) and rec[3]["rule"] == "unchanged"
+    # without a ceiling the exploded instance falls back to the max_step rule
+    _, rec = B.bgdo_update(B.log_E_from_instances(insts), assembled, sc, bcfg(),
+                           limits={"static_stress": sstress, "fate": info["fate"]})
+    assert rec[0]["clipped"] and rec[0]["E_after"] == pytest.approx(3e10 * math.exp(-bcfg()["max_step"]))

@@ -67,7 +67,7 @@ def test_render_change_touches_only_render(cfg):
 def test_bgdo_change_keeps_first_forward(cfg):
     a = P.make_plan(cfg, "bear")
     c2 = copy.deepcopy(cfg)
-    c2["bgdo"]["delta_target"] = a.cfgs["bgdo"]["bgdo"]["delta_target"] * 2
+    c2["bgdo"]["reference_height"] = a.cfgs["bgdo"]["bgdo"]["reference_height"] * 2
     b = P.make_plan(C.validate_config(c2), "bear")
     assert a.path("forward", "it0") == b.path("forward", "it0")
     assert a.ids["bgdo"] != b.ids["bgdo"] and a.path("final") != b.path("final")

@@ -40,11 +40,38 @@ tau is linear in (mu, lambda), hence in E, for all five models, so g_p = ||tau_p
 Update
 ------
     eta  = min(1, 0.1 log(1 + E_k / p_ref_k))                       (bgdo.eta_rule paper)
-    G    = sum_i w_i [eta g~_i - (1 - eta)(delta_i - delta_target) / s_delta] / sum_i w_i
-    log E_k <- log E_k - clip(G, -max_step, max_step)
+    G    = eta mean_i g~_i - (1 - eta) mean_{i > 0} log(delta_i / delta_target_k)
+    log E_k <- log E_k - clip(G, -max_step, max_step),  never raised above the solver ceiling
 
-This is ``variant: algorithm1`` (default): Appendix B.5's update and Algorithm 1. The main
-text (Sec. 4.2, Eqs. 6-8) reads differently; ``variant: main_text`` implements it:
+This is ``variant: algorithm1`` (default) with ``deformation_signal: log_ratio`` (default).
+With ``deformation_signal: difference`` it is Appendix B.5's update and Algorithm 1 literally:
+
+    G    = sum_i w_i [eta g~_i - (1 - eta)(delta_i - delta_target_k) / s_delta] / sum_i w_i
+
+Why the log ratio: for a linear material under a fixed load the deformation is proportional to
+1 / E, so d log(delta) / d log E = -1 and log(delta / delta_target) is exactly the Newton step
+of log E onto the target; (1 - eta) damps it. The literal difference is bounded below (-1 in
+units of the target: a frame that does not deform at all asks for a decrease of at most
+1 - eta) and grows linearly above, so its step sizes depend on s_delta and max_step rather than
+on how far E is from its target: measured with the first implementation (difference, one
+delta_target 0.1 for all materials), a collapse raised E by the whole max_step and a key frame
+deforming 2x the target lowered it as much as one deforming 20x. The log ratio is undefined
+for the rest state (frame 0, F = I, delta = 0), which carries no deformation information: the
+deformation term averages the key frames after frame 0, the stress term all key frames.
+
+Per-material target: ``delta_target: null`` (default) gives each instance delta_target_k =
+rho_k g h_ref / E_ref_k (h_ref = ``reference_height``, 0.3 m): the strain its own weight causes
+in a 0.3 m object of its material at the material's reference modulus (jelly 0.044, bread
+0.010, rubber 0.010, foam 0.0032, stone 3.4e-4). The paper's single target 0.1
+(``delta_target: 0.1``) pulls every material to 10% stretch, so a stone, a metal can or a
+wooden basket lands at jelly stiffness and a light material (bread, 250 kg/m^3) far below its
+band (measured with the first implementation: the stone of duck_stone 3e8 -> 3e5 -> 1.4e5 Pa,
+band 5e6-1e8; bread from any start 4e3 Pa, band 1e4-5e5). A first per-material version with
+one characteristic stress for every material (7 kPa / E_ref) fixed the stiff materials but
+still left bread (4e3 Pa) and the foam mat (267 Pa) below their bands: the load scales with the
+density, so the target has to as well.
+
+The main text (Sec. 4.2, Eqs. 6-8) reads differently; ``variant: main_text`` implements it:
 
     g_tau = mean_i mean_p |g_p| / p_ref_k,   g = log(1 + g_tau),   d_F = mean_i delta_i / s_delta
     G     = eta g - (1 - eta) d_F
@@ -72,62 +99,87 @@ benchmarks/bgdo_robustness.py --bgdo scaling=si. The paper's E values are in a s
 normalised units. ``scaling: reference`` (default) keeps the formulas and makes their
 arguments dimensionless:
 
-* E and the stress gradient in units of a reference pressure ``p_ref = delta_target * E_ref``,
-  the Kirchhoff stress of the material's reference modulus at the target deformation
-  (||tau|| ~ E ||eps|| for small strain). E_ref is the geometric mean of the material's
-  ``E_range`` in the knowledge base (data/materials.yaml; jelly: sqrt(1e4 * 5e5) = 7.1e4 Pa,
-  so p_ref = 7.1 kPa), or ``bgdo.reference_modulus`` for a material not in it;
-  ``bgdo.reference_pressure`` fixes one p_ref for all instances. Then eta = 0.09 at the jelly
-  band's lower end, 0.43 at its upper end and 1 above E = 22000 p_ref (1.6e8 Pa): an over-stiff
-  E lets the stress term dominate (E decreases), an over-soft E lets the deformation term
-  dominate (E increases), and in the band both are O(1).
-* The deformation in units of ``s_delta = delta_target`` (``bgdo.deformation_scale``). delta is
-  at most ~1.1 when an object collapses (||sigma - 1|| at J = 0.05), so the literal
-  (delta - 0.1) term could raise log E by less than 1 per iteration (30 Pa -> ~80 Pa after two);
-  in units of the target a collapsed key frame counts -(1.09 - 0.1) / 0.1 = -9.9, and a
-  collapse raises E by about e^6 in one iteration.
-* ``max_step`` (default ln 1000) bounds |G| per iteration (a trust region). It binds only for
-  exploded forward runs (below) and is what makes the over-stiff case go 3e10 -> 3e7 -> 3e4 Pa.
+* E and the stress gradient in units of a reference pressure ``p_ref = reference_strain *
+  E_ref`` (reference_strain 0.1), the Kirchhoff stress of the material's reference modulus at
+  10% strain (||tau|| ~ E ||eps|| for small strain). E_ref is the geometric mean of the
+  material's ``E_range`` in the knowledge base (data/materials.yaml; jelly: sqrt(1e4 * 5e5) =
+  7.1e4 Pa, so p_ref = 7.1 kPa), or ``bgdo.reference_modulus`` for a material not in it;
+  ``bgdo.reference_pressure`` fixes one p_ref for all instances. Then eta = 0.24 at E = E_ref
+  for every material, 0.09 at the jelly band's lower end, 0.43 at its upper end and 1 above
+  E = 22000 p_ref: an over-stiff E lets the stress term dominate (E decreases), an over-soft E
+  lets the deformation term dominate (E increases), and in the band both are O(1).
+* The deformation relative to its target (log_ratio), or in units of ``s_delta =
+  delta_target`` (``bgdo.deformation_scale``, deformation_signal difference).
+* ``max_step`` (default ln 10000) bounds |G| per iteration (a trust region for the signals).
 
 Unstable forward runs
 ---------------------
 forward_sim stops at the first unstable frame and stores the last stable state in place of
 the key frames it could not reach (attribute ``substitute_for``). :func:`unstable_run_info`
 decides per instance: "exploded" when its CFL number (wave speed x dt / dx of the failing
-frame) exceeded ``bgdo.cfl_limit`` (1): it was too stiff for the substep cap, and the missing
-key frames count as diverged states, compressed stress log(1 + inf) = inf, so G = max_step;
-"broken" when the failure message names it (collapse J < j_min, tearing, leaving the domain)
-without a CFL violation: it could not carry its load, and the missing key frames count with
-the collapse deformation sqrt(3)(1 - j_min^(1/3)) = 1.09; an instance the failure did not
-involve uses the key frames that were stored, and keeps its E if none after frame 0 was
-(:func:`assemble_frames`). Without this the over-soft case goes the wrong
-way: the bear at 30 Pa collapses at impact, its last stable frame (still falling) shows
-delta = 0.04 and BGDO would lower E (30 -> 14 -> 6.5 Pa).
+frame) exceeded ``bgdo.cfl_limit`` (1): it was too stiff for the substep cap; "broken" when the
+failure message names it (collapse J < j_min, tearing, leaving the domain) without a CFL
+violation: it could not carry its load. A failed run measures nothing for the key frames it
+did not reach, so ``failure_rule: static_load`` (default) uses two facts that do not need
+them (:func:`assemble_frames`, :func:`bgdo_update`):
 
-Robustness (``python benchmarks/bgdo_robustness.py --scenes bear duck_stone bread``; 6000
-gaussians, n_grid 32, 90 frames, sim.stability.j_min 0.02), E0 -> E1 -> E2 in Pa, all final
-simulations stable:
+* the solver ceiling E_cap (:func:`solver_ceiling`): the stiffest modulus the configured
+  substep cap integrates at its CFL number. An exploded instance goes to min(E_cap,
+  rho |g| H / delta_target), the ceiling or the modulus at which its own weight strains it by
+  the target (:func:`static_stress`: rho |g| H is the static stress at the base of an
+  instance of height H). No update raises E above the ceiling (``ceiling: true``), so the
+  final simulation does not explode either.
+* the static strain rho |g| H / E: a broken instance's missing key frames count with the
+  deformation max(collapse deformation sqrt(3)(1 - j_min^(1/3)) = 1.09, static strain), and an
+  instance the failure did not involve but whose static strain exceeds the collapse
+  deformation (it cannot carry its own weight) is broken too. An uninvolved instance that can
+  carry its weight uses the key frames that were stored, and keeps its E if none after frame 0
+  was.
 
-    bear  jelly  [1e4, 5e5]   3e10 -> 3e7 -> 3e4    3e8 -> 3e5 -> 1.53e5   30 -> 3e4 -> 2.3e4
-    bread bread  [1e4, 5e5]   3e10 -> 3e7 -> 3e4    3e8 -> 3e5 -> 1.55e5   30 -> 3e4 -> 1.47e4
-    duck  rubber [1e5, 1e6]   3e10 -> 3e7 -> 3e4 x  3e8 -> 3e5 -> 1.49e5   30 -> 30 -> 3e4 x
-    stone stone  [5e6, 1e8]   3e10 -> 3e7 -> 3e7    3e8 -> 3e5 -> 1.44e5 x 30 -> 3e4 -> 3e4 x
+``failure_rule: max_step`` is the first implementation: exploded key frames count as an
+infinite stress signal (the paper's log(1 + |g|) of a diverged stress), so G = max_step;
+broken ones with the collapse deformation only; uninvolved instances keep E. Without any
+failure handling the over-soft case goes the wrong way: the bear at 30 Pa collapses at impact,
+its last stable frame (still falling) shows delta = 0.04 and BGDO would lower E (30 -> 14 ->
+6.5 Pa).
 
-(x: outside the band.)
+Robustness (``python benchmarks/bgdo_robustness.py --scenes bear bear_can duck_stone ficus
+basket_mat bread --device cuda --n-gaussians 20000 --frames 150 --forward-frames 150 --E0 3e10
+3e8 30 kb`` on an H200: the main job's scene size, n_grid 32, 150 frames). E0 -> E1 -> E2 in Pa;
+every final simulation is stable, and without BGDO every corrupted start is unstable. c: held
+at the solver ceiling E_cap; x: outside the band.
+
+    instance (material) band      from 3e10 (3e8: same)    from 30                  from the KB E
+    bear (jelly) [1e4, 5e5]       1.23e5 -> 1.10e5         1.22e5 -> 1.10e5         5e4 -> 7.2e4 -> 8.4e4
+    bear_can: bear (jelly)        1.11e5 -> 1.06e5         1.11e5 -> 1.10e5         5e4 -> 8.4e4 -> 9.4e4
+    bear_can: can (metal) [5e6, 1e8] 1.37e7 -> 5.13e7 c    3e5 -> 1.54e7            2e7 -> 5.13e7 c -> 5.13e7 c
+    duck (rubber) [1e5, 1e6]      2.52e5 -> 4.26e5         2.52e5 -> 5.59e5         5e5 -> 6.2e5 -> 7.1e5
+    stone (stone) [5e6, 1e8]      1.43e7 -> 1.90e7 c       3e5 -> 1.90e7 c          2e7 -> 2e7 -> 2e7
+    ficus (plant) [5e4, 5e6]      4.57e6 c -> 4.16e5       9.2e3 -> 4.0e4 x         3e5 -> 3.7e5 -> 2.7e5
+    mat (foam) [1e4, 3e5]         2.23e3 -> 1.16e5         1.17e4 -> 1.64e5         3e4 -> 2.0e5 -> 4.0e5 x
+    basket (wood) [2e6, 1e8]      3.92e6 c -> 3.92e6 c     3e5 -> 3.92e6 c          1e7 -> 1e7 -> 1e7
+    bread (bread) [1e4, 5e5]      4.17e4 -> 6.27e4         4.16e4 -> 6.26e4         5e4 -> 6.8e4 -> 7.8e4
+
+The 300k-gaussian bear at n_grid 64 (360,603 particles), which collapses at impact with its
+knowledge-base E: 5e4 -> 6.5e5 -> 2.9e5 and 30 -> 1.2e5 -> 1.1e5, final runs stable (the first
+implementation oscillated 5e4 -> 1.6e7 -> 1.6e4 and its final run collapsed).
 
 Limitations (measured: benchmarks/bgdo_robustness.py, benchmarks/bgdo_stress_vs_E.py)
 -------------------------------------------------------------------------------------
-* The fast over-stiff correction relies on the forward run exploding (the paper's "abnormal
-  stress"). While a stiff E still runs stably, the stress is bounded by the load (a few kPa to
-  ~10 kPa for the bear, whatever E) and one iteration lowers E only ~2x (-G = 0.7-0.85 from 1e6
-  to 3e7 Pa at max_substeps 200).
-* A collapse is a yes/no signal: any collapse raises E by ~e^6.3, so a slightly too soft E
-  overshoots (bear: 1.2e4 -> 3.3e6 Pa) and needs further iterations to come down.
-* delta_target pulls every material towards a key-frame stretch of 0.1; near-rigid bands
-  (stone 5e6-1e8 Pa) are left from below when E starts low (stone: 3e5 -> 1.4e5 Pa).
-* An unstable forward run stops at its first failure, so one instance's collapse can hide
-  another's behaviour (duck_stone from 30 Pa: the stone collapses first, the duck keeps 30 Pa
-  for two iterations).
+* BGDO does not discover E from nothing: its fixed point is where the key-frame stretch
+  matches delta_target, so the target decides where it lands. With the per-material target an
+  object loaded by its own weight lands near E_ref x H / 0.4 m; an object loaded by something
+  else lands where that load strains it like its own weight would strain a 0.3 m object (the
+  foam mat under the basket: 4e5 Pa from its KB 3e4, above its band), and an instance with no
+  gravity (the ficus in wind) has no static estimate, so from 30 Pa it needs a third iteration.
+* A collapse is a yes/no signal: the collapsed key frames count with at least the collapse
+  deformation, so a slightly too soft E overshoots (300k bear at grid 64: 5e4 -> 6.5e5) and
+  the next iteration comes back down.
+* The ceiling depends on the solver settings: stiff materials (stone, metal, wood) end at E_cap,
+  which falls 4x per doubling of n_grid (stone: 1.9e7 Pa at grid 32, 4.8e6 at 64, below its
+  band); raise sim.max_substeps for them.
+* The mean stretch over an instance dilutes local deformation (a mat deformed only under the
+  basket, a plant bent at its stems).
 
 Deformation measure
 -------------------
@@ -144,10 +196,11 @@ The band of a material is its ``E_range`` in the knowledge base: simulation-effe
 (not handbook values) for a 0.5 m tabletop object at n_grid 32-64 and 30 fps. For jelly,
 [1e4, 5e5] Pa. It is right for this simulator because it contains gelatin's measured 1-100 kPa
 and matches what the bear does (benchmarks/bgdo_stress_vs_E.py, 60 runs): below ~1.2e4 Pa it
-collapses at impact (J < sim.stability.j_min = 0.05), from ~1.7e4 Pa it lands and wobbles
-(key-frame stretch ~0.1 at the lower end), and towards 5e5 Pa the key-frame stretch falls below
-1 % (it barely deforms) while the explicit step needs ~54 substeps per frame at n_grid 32.
-BGDO's own fixed point (key-frame stretch = delta_target) is at ~1.7e4 Pa for the bear.
+collapses at impact (J < sim.stability.j_min), from ~1.7e4 Pa it lands and wobbles, and
+towards 5e5 Pa the key-frame stretch falls below 1 % (it barely deforms) while the explicit
+step needs ~54 substeps per frame at n_grid 32. Stiff materials' bands (stone, metal, wood
+from 2e6-5e6 Pa up) are where they barely deform at all; their upper part is beyond the solver
+ceiling at the default substep cap.
 """
 from __future__ import annotations
 
@@ -168,6 +221,8 @@ PLASTICITY = materials_kb.PLASTICITY_MODELS
 SIG_FLOOR = 1e-6  # logs use log(max(sig, 1e-6)) (CONTRACTS.md, SVD convention)
 J_FLOOR = 1e-6    # neo-Hookean: J clamped to >= 1e-6 inside the log
 SVD_GAP = 1e-6    # smallest |s_j^2 - s_i^2| used in the SVD backward (repeated singular values)
+G_REF = 9.81       # m/s^2: the gravity of the per-material delta_target (whatever the scene's gravity)
+DELTA_FLOOR = 1e-4  # log_ratio: delta is taken as at least 1e-4 delta_target (log ratio >= -9.2)
 
 
 def canonical_elasticity(name: str, key: str = "elasticity") -> str:
@@ -585,25 +640,40 @@ class Scales:
 
     pressure  # [K] Pa: E and the stress gradient are divided by it (E_hat, g_hat)
     modulus  # [K] Pa: the reference modulus E_ref the pressure was derived from
-    deformation: delta and delta_target are divided by it
+    deformation  # [K] or scalar: s_delta, delta is divided by it (deformation_signal difference)
     source: per instance, where E_ref came from; band: per instance the material's KB
     ``E_range`` [lo, hi] in Pa, or None when the material is not in the knowledge base.
+    target  # [K] delta_target per instance (None: 0.1 for every instance)
     """
 
     pressure: np.ndarray
     modulus: np.ndarray
-    deformation: float
+    deformation: np.ndarray | float
     source: list
     band: list
+    target: np.ndarray | None = None
+
+    def s_delta(self, k: int) -> float:
+        return float(np.broadcast_to(np.asarray(self.deformation, np.float64), self.pressure.shape)[k])
+
+    def delta_target(self, k: int) -> float:
+        return 0.1 if self.target is None else float(self.target[k])
 
 
 def reference_scales(instances: list[dict], bcfg: dict) -> Scales:
-    """The reference scales of every instance (ordered by label) for config ``bcfg`` (section bgdo)."""
+    """The reference scales of every instance (ordered by label) for config ``bcfg`` (section bgdo).
+
+    delta_target per instance: ``bgdo.delta_target`` if it is a number, else (null, default)
+    ``rho g h_ref / E_ref``: the strain that its own weight causes in an object of the
+    reference height h_ref (``bgdo.reference_height``, 0.3 m) of this material at the material's
+    reference modulus (h_ref 0.3 m: jelly 0.044, bread 0.010, rubber 0.010, stone 3.4e-4)."""
 
     by_label = {int(i["label"]): i for i in instances}
     K = len(by_label)
-    dtarget = float(bcfg["delta_target"])
-    modulus, pressure, source, band = [], [], [], []
+    fixed_target = bcfg.get("delta_target")
+    ref_strain = float(bcfg.get("reference_strain", 0.1))
+    h_ref = float(bcfg.get("reference_height", 0.3))
+    modulus, pressure, source, band, target = [], [], [], [], []
     for k in range(K):
         inst = by_label[k]
         name = inst.get("material")
@@ -617,6 +687,7 @@ def reference_scales(instances: list[dict], bcfg: dict) -> Scales:
         if bcfg["scaling"] == "si":
             modulus.append(1.0)
             pressure.append(1.0)
+            target.append(0.1 if fixed_target is None else float(fixed_target))
             source.append("si: signals in Pa, literal reading of the paper")
             continue
         if entry is not None:
@@ -629,17 +700,76 @@ def reference_scales(instances: list[dict], bcfg: dict) -> Scales:
         p = bcfg.get("reference_pressure")
         modulus.append(e_ref)
         if p is None:
-            pressure.append(dtarget * e_ref)
+            pressure.append(ref_strain * e_ref)
         else:
             pressure.append(float(p))
             src += f"; pressure fixed by bgdo.reference_pressure = {float(p):.3g} Pa"
+        if fixed_target is None:
+            t = float(inst["density"]) * G_REF * h_ref / e_ref
+            target.append(t)
+            src += f"; delta_target = rho g h_ref / E_ref = {t:.3g}"
+        else:
+            target.append(float(fixed_target))
         source.append(src)
+    target = np.asarray(target, np.float64)
     if bcfg["scaling"] == "si":
-        sdelta = 1.0
+        sdelta = np.ones(K)
     else:
         sd = bcfg.get("deformation_scale")
-        sdelta = dtarget if sd is None else float(sd)
-    return Scales(np.asarray(pressure, np.float64), np.asarray(modulus, np.float64), sdelta, source, band)
+        sdelta = target.copy() if sd is None else np.full(K, float(sd))
+    return Scales(np.asarray(pressure, np.float64), np.asarray(modulus, np.float64), sdelta, source, band, target)
+
+
+# ----------------------------------------------------------------------------- solver and load limits
+def solver_ceiling(instances: list[dict], sim: dict, grid: "GridSpec") -> np.ndarray:
+    """The largest E per instance (Pa, label order)  # [K] that the forward/final solver integrates
+    at its own CFL number: the P-wave speed sqrt((lam + 2 mu) / rho) reaches sim.cfl * dx / dt at
+    the smallest substep the config allows (frame_dt / sim.max_substeps, or sim.substep_dt in
+    fixed mode). Above it the substep cap binds and the explicit step runs over its CFL number;
+    from about twice the wave speed (4x this E) it explodes.
+
+        E_cap = rho (cfl dx / dt_min)^2 (1 + nu)(1 - 2 nu) / (1 - nu)
+    """
+    from .mpm.timestep import TimeStepper
+
+    stepper = TimeStepper.from_config(sim or {})
+    n_max = stepper.fixed_substeps if stepper.mode == "fixed" else int(stepper.max_substeps)
+    dt_min = stepper.frame_dt / n_max
+    dx = grid.domain_size / grid.n_grid
+    c_cap = stepper.cfl * dx / dt_min
+    by_label = {int(i["label"]): i for i in instances}
+    out = []
+    for k in range(len(by_label)):
+        i = by_label[k]
+        nu, rho = float(i["nu"]), float(i["density"])
+        out.append(rho * c_cap ** 2 * (1 + nu) * (1 - 2 * nu) / (1 - nu))
+    return np.asarray(out, np.float64)
+
+
+def static_stress(x0, label, instances: list[dict], grid: "GridSpec") -> np.ndarray:
+    """The static stress rho |g| H_k (Pa) at the base of each instance under gravity  # [K]
+
+    x0  # [P, 3] particle positions (domain units) at the first key frame; label  # [P].
+    H_k is the extent of instance k along gravity in metres. With no gravity it is 0.
+    The strain this stress causes at modulus E, rho |g| H / E, is the deformation BGDO assumes
+    for an instance whose forward run failed (module docs, "Unstable forward runs")."""
+    g = np.asarray(grid.gravity, np.float64)
+    gn = float(np.linalg.norm(g))
+    by_label = {int(i["label"]): i for i in instances}
+    K = len(by_label)
+    out = np.zeros(K)
+    if gn == 0.0:
+        return out
+    x0 = np.asarray(x0, np.float64)
+    label = np.asarray(label)
+    ok = np.isfinite(x0).all(axis=1)
+    h = x0[ok] @ (g / gn) * grid.domain_size
+    lab = label[ok]
+    for k in range(K):
+        hk = h[lab == k]
+        if hk.size:
+            out[k] = float(by_label[k]["density"]) * gn * float(hk.max() - hk.min())
+    return out
 
 
 # ----------------------------------------------------------------------------- signals
@@ -824,12 +954,17 @@ def assemble_frames(frames: list[list[dict]], meta: dict, info: dict) -> list[li
     "exploded" instance every missing key frame is an exploded state: all particles diverged,
     the compressed stress signal is +inf (the paper's log(1 + |g|) of a diverged stress) and the
     deformation undefined. For a "broken" instance every missing key frame is a collapsed state
-    with deformation ``info["delta_broken"]`` and the last stable frame's stress signal. An
-    instance the failure did not involve ("ok" in an unstable run) gets nothing for the missing
-    key frames: the run ended before they could show its behaviour (the last stable frame of a
-    run that broke at impact shows an object still falling); if it is left with no stored key
-    frame after frame 0 (the rest state), it has no evidence and :func:`bgdo_update` leaves its
-    E unchanged (``no_evidence``). Returns ``[frame][instance]`` records with a ``weight``."""
+    with the last stable frame's stress signal and the deformation max(``info["delta_broken"]``,
+    the static strain ``info["static_delta"][k]`` = rho |g| H / E when given): a collapse shows
+    at least the collapse deformation, and an object far too soft to carry its own weight
+    would have deformed by its static strain had the run not stopped. An instance the failure
+    did not involve ("ok" in an unstable run) gets nothing for the missing key frames: the run
+    ended before they could show its behaviour (the last stable frame of a run that broke at
+    impact shows an object still falling); if it is left with no stored key frame after frame 0
+    (the rest state), it is "broken" too when its static strain exceeds the collapse
+    deformation (it cannot carry its own weight; ``info["fate"]`` is updated), else it has no
+    evidence and :func:`bgdo_update` leaves its E unchanged (``no_evidence``). Returns
+    ``[frame][instance]`` records with a ``weight``."""
     stats = meta.get("stats") or {}
     requested = stats.get("key_frames_requested")
     fate = info["fate"]
@@ -843,10 +978,17 @@ def assemble_frames(frames: list[list[dict]], meta: dict, info: dict) -> list[li
             new_rows.append({**r, "frame": frame, "weight": own, "substitute_for": list(subs)})
             last[k] = r
         out.append(new_rows)
+    static = info.get("static_delta")
     if not info["stable"]:
         for k, f in enumerate(fate):
             informative = [rows[k] for rows in out if rows[k]["weight"] > 0 and rows[k]["frame"] > 0]
             if f == "ok" and not informative:
+                if static is not None and static[k] > info["delta_broken"]:
+                    # it cannot carry its own weight: the static strain alone is beyond a collapse
+                    fate[k] = "broken"
+                    info.setdefault("fate_reason", {})[k] = (
+                        f"static strain rho |g| H / E = {static[k]:.3g} > collapse deformation {info['delta_broken']:.3g}")
+                    continue
                 for rows in out:
                     rows[k]["no_evidence"] = True
     if any(f != "ok" for f in fate):
@@ -861,7 +1003,8 @@ def assemble_frames(frames: list[list[dict]], meta: dict, info: dict) -> list[li
                     rows.append({**base, "n_exploded": r["n_particles"], "stress_grad_hat": math.inf,
                                  "g_tilde": math.inf, "delta": None, "weight": 1})
                 elif f == "broken":
-                    d = info["delta_broken"] if r["delta"] is None else max(info["delta_broken"], r["delta"])
+                    d = max(info["delta_broken"], 0.0 if r["delta"] is None else r["delta"],
+                            0.0 if static is None else float(static[k]))
                     rows.append({**base, "n_exploded": 0, "stress_grad_hat": r["stress_grad_hat"],
                                  "g_tilde": r["g_tilde"], "delta": d, "weight": 1})
                 else:
@@ -880,9 +1023,8 @@ def eta_value(E: float, pressure: float, bcfg: dict) -> tuple[float, float]:
     return min(1.0, float(bcfg["eta_coefficient"]) * math.log1p(E_hat)), E_hat
 
 
-def _instance_step(frames_k: list[dict], eta: float, bcfg: dict, sdelta: float) -> tuple[float, list]:
+def _instance_step(frames_k: list[dict], eta: float, bcfg: dict, sdelta: float, target: float) -> tuple[float, list]:
     """(G, per-frame terms) for one instance from its per-frame records."""
-    dt_ = float(bcfg["delta_target"])
     usable = [r for r in frames_k if r["g_tilde"] is not None and r.get("weight", 1) > 0]
     if not usable or any(r.get("no_evidence") for r in frames_k):
         return math.nan, []
@@ -897,48 +1039,87 @@ def _instance_step(frames_k: list[dict], eta: float, bcfg: dict, sdelta: float) 
         d_F = (sum(w * d for w, d in dl) / sum(w for w, _ in dl)) / sdelta if dl else 0.0
         G = stress_term(math.log1p(g_tau)) - (1.0 - eta) * d_F
         return G, [{"frame": r["frame"], "weight": r.get("weight", 1)} for r in usable]
-    terms = []
-    for r in usable:
-        dterm = 0.0 if r["delta"] is None else (1.0 - eta) * (r["delta"] - dt_) / sdelta
-        terms.append({"frame": r["frame"], "weight": r.get("weight", 1), "term": stress_term(r["g_tilde"]) - dterm})
-    return sum(t["weight"] * t["term"] for t in terms) / W, terms
+    if bcfg.get("deformation_signal", "log_ratio") == "difference":
+        terms = []
+        for r in usable:
+            dterm = 0.0 if r["delta"] is None else (1.0 - eta) * (r["delta"] - target) / sdelta
+            terms.append({"frame": r["frame"], "weight": r.get("weight", 1), "term": stress_term(r["g_tilde"]) - dterm})
+        return sum(t["weight"] * t["term"] for t in terms) / W, terms
+    # log_ratio: the stress term averaged over all key frames, the deformation term
+    # log(delta / delta_target) over the key frames after the rest state (frame 0: F = I)
+    S = sum(r.get("weight", 1) * stress_term(r["g_tilde"]) for r in usable) / W
+    floor = target * DELTA_FLOOR
+    dfr = [r for r in usable if r["delta"] is not None and r["frame"] > 0]
+    Wd = float(sum(r.get("weight", 1) for r in dfr))
+    D = (sum(r.get("weight", 1) * math.log(max(r["delta"], floor) / target) for r in dfr) / Wd) if Wd > 0 else 0.0
+    terms = [{"frame": r["frame"], "weight": r.get("weight", 1), "stress": stress_term(r["g_tilde"]),
+              "log_ratio": (math.log(max(r["delta"], floor) / target)
+                            if r["delta"] is not None and r["frame"] > 0 else None)} for r in usable]
+    return S - (1.0 - eta) * D, terms
 
 
-def bgdo_update(log_E, frames: list[list[dict]], scales: Scales, bcfg: dict) -> tuple[np.ndarray, list[dict]]:
+def bgdo_update(log_E, frames: list[list[dict]], scales: Scales, bcfg: dict,
+                limits: dict | None = None) -> tuple[np.ndarray, list[dict]]:
     """One BGDO update of log E per instance from the key-frame signals.
 
     log_E  # [K] natural log of E (Pa); frames: ``[frame][instance]`` records of
-    :func:`bgdo_signals`. Returns (new log E  # [K], one record per instance with the
-    signals, eta, E_hat, the step G, E before and after).
+    :func:`bgdo_signals` (after :func:`assemble_frames`). limits (optional): {"ceiling"  # [K]
+    :func:`solver_ceiling` (Pa), "static_stress"  # [K] :func:`static_stress` (Pa), "fate": [K]
+    of :func:`unstable_run_info`}. Returns (new log E  # [K], one record per instance with the
+    signals, eta, E_hat, the step G, E before and after, and which rule set E).
+
+    With ``failure_rule: static_load`` (default) an "exploded" instance goes to
+    min(E_cap, static_stress / delta_target): the stiffest modulus the solver integrates, or
+    the one at which its own weight strains it by the target, whichever is lower. With
+    ``ceiling: true`` (default) no update raises E above max(E, E_cap).
     """
     log_E = np.asarray(torch.as_tensor(log_E).detach().cpu().double().numpy(), dtype=np.float64).reshape(-1)
     K = log_E.shape[0]
     max_step = bcfg.get("max_step")
+    limits = limits or {}
+    ceiling = limits.get("ceiling")
+    sstress = limits.get("static_stress")
+    fates = limits.get("fate") or ["ok"] * K
     new = log_E.copy()
     records = []
     for k in range(K):
         E = float(math.exp(log_E[k]))
         eta, E_hat = eta_value(E, float(scales.pressure[k]), bcfg)
         fk = [fr[k] for fr in frames]
-        G, terms = _instance_step(fk, eta, bcfg, scales.deformation)
+        target = scales.delta_target(k)
+        G, terms = _instance_step(fk, eta, bcfg, scales.s_delta(k), target)
+        cap = None if ceiling is None else float(ceiling[k])
         rec = {"label": k, "E_before": E, "log_E_before": float(log_E[k]), "eta": eta, "E_hat": E_hat,
                "reference_pressure": float(scales.pressure[k]), "reference_modulus": float(scales.modulus[k]),
-               "deformation_scale": scales.deformation, "reference_source": scales.source[k],
-               "band": scales.band[k], "frames": fk, "terms": terms}
+               "deformation_scale": scales.s_delta(k), "delta_target": target, "reference_source": scales.source[k],
+               "band": scales.band[k], "fate": fates[k], "ceiling": cap,
+               "static_stress": None if sstress is None else float(sstress[k]), "frames": fk, "terms": terms,
+               "capped_by_ceiling": False, "rule": "signals"}
         if math.isnan(G):
             why = ("the forward run became unstable (other instances) before any key frame after frame 0"
                    if any(r.get("no_evidence") for r in fk) else "no particle of this instance in any key frame")
             rec.update(G=None, G_unclipped=None, clipped=False, E_after=E, log_E_after=float(log_E[k]),
-                       note=f"{why}: E left unchanged")
+                       note=f"{why}: E left unchanged", rule="unchanged")
+        elif (fates[k] == "exploded" and bcfg.get("failure_rule", "static_load") == "static_load"
+              and cap is not None and cap < E):
+            s = 0.0 if sstress is None else float(sstress[k])
+            E_new = cap if s <= 0 else min(cap, s / target)
+            new[k] = math.log(E_new)
+            rec.update(G=float(log_E[k] - new[k]), G_unclipped=None, clipped=False, E_after=E_new,
+                       log_E_after=float(new[k]), rule=("exploded: min(E_cap, static stress / delta_target)"
+                                                         if s > 0 else "exploded: E_cap"))
         else:
             if max_step is None and not math.isfinite(G):
                 raise SimulationError(f"instance {k}: the forward simulation exploded (infinite stress signal) and "
                                       "bgdo.max_step is null, so the update of log E would be infinite; set "
-                                      "bgdo.max_step (default ln 1000)")
+                                      "bgdo.max_step (default ln 10000)")
             Gc = G if max_step is None else max(-float(max_step), min(float(max_step), G))
             new[k] = log_E[k] - Gc
-            rec.update(G=Gc, G_unclipped=(None if math.isinf(G) else G), clipped=bool(Gc != G),
-                       E_after=float(math.exp(new[k])), log_E_after=float(new[k]))
+            rec.update(G=Gc, G_unclipped=(None if math.isinf(G) else G), clipped=bool(Gc != G))
+            if bcfg.get("ceiling", True) and cap is not None and new[k] > log_E[k] and new[k] > math.log(cap):
+                new[k] = max(float(log_E[k]), math.log(cap))
+                rec.update(capped_by_ceiling=True, G=float(log_E[k] - new[k]))
+            rec.update(E_after=float(math.exp(new[k])), log_E_after=float(new[k]))
         band = scales.band[k]
         rec["in_band_before"] = None if band is None else bool(band[0] <= E <= band[1])
         rec["in_band_after"] = None if band is None else bool(band[0] <= rec["E_after"] <= band[1])
@@ -1025,6 +1206,14 @@ def iter_keyframes(path: str, frames: list):
         with h5py.File(path, "r") as f:
             g = f["keyframes"][name]
             yield {"frame": frame, "time": time_, "dt": dt, **{k: g[k][...] for k in ("x", "v", "C", "F")}}
+
+
+def _first_positions(path: str, frames: list) -> np.ndarray:
+    """x  # [P, 3] of the first stored key frame (the rest state for the static load)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return np.asarray(f["keyframes"][frames[0][0]]["x"][...], dtype=np.float64)
 
 
 def resolve_device(cfg: dict) -> str:
@@ -1122,6 +1311,14 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
     frames = bgdo_signals(iter_keyframes(inputs["keyframes"], meta["frames"]), log_E, table, grid, scales,
                           device=device, dtype=dtype, log=log, measure=bcfg["deformation_measure"])
     info = unstable_run_info(meta, params["instances"], grid, float(bcfg["cfl_limit"]))
+    x0 = _first_positions(inputs["keyframes"], meta["frames"])
+    sstress = static_stress(x0, meta["label"], params["instances"], grid)
+    E_now = np.exp(log_E.detach().cpu().double().numpy())
+    info["static_delta"] = [float(s_ / e_) for s_, e_ in zip(sstress, E_now)]
+    rec_sim = (meta.get("sim_config") or {}).get("sim") or cfg.get("sim") or {}
+    ceiling = solver_ceiling(params["instances"], rec_sim, grid)
+    log.info("static stress rho|g|H per instance %s Pa (static strain %s); solver ceiling E_cap %s Pa",
+             [f"{v:.3g}" for v in sstress], [f"{v:.3g}" for v in info["static_delta"]], [f"{v:.3g}" for v in ceiling])
     if not info["stable"]:
         log.warning("the forward run was unstable (key frames %s not reached; CFL number per instance %s, "
                     "bgdo.cfl_limit %g): instance fates %s (exploded: too stiff for the substep cap; broken: "
@@ -1129,7 +1326,8 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
                     info["cfl"], float(bcfg["cfl_limit"]), info["fate"])
     frames = assemble_frames(frames, meta, info)
     t2 = time.perf_counter()
-    new_log_E, records = bgdo_update(log_E, frames, scales, bcfg)
+    new_log_E, records = bgdo_update(log_E, frames, scales, bcfg,
+                                     limits={"ceiling": ceiling, "static_stress": sstress, "fate": info["fate"]})
     iteration = 1 + sum(1 for h in params.get("history") or [] if isinstance(h, dict) and h.get("stage") == "bgdo_update")
     out = copy.deepcopy(params)
     by_label = {int(i["label"]): i for i in out["instances"]}
@@ -1143,15 +1341,20 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
         inst["E"] = rec["E_after"]
         inst["provenance"] = {"source": "bgdo", "iteration": iteration, "E_before": rec["E_before"],
                               "E_after": rec["E_after"], "G": rec["G"], "previous": inst.get("provenance")}
-        log.info("instance %d (%s, %s): E %.4g -> %.4g Pa (G = %s, eta = %.3f, E_hat = %.4g)%s", rec["label"],
-                 rec["name"], rec["material"], rec["E_before"], rec["E_after"],
-                 "n/a" if rec["G"] is None else f"{rec['G']:.4f}", rec["eta"], rec["E_hat"],
-                 " [clipped to max_step]" if rec["clipped"] else "")
+        log.info("instance %d (%s, %s): E %.4g -> %.4g Pa (G = %s, eta = %.3f, E_hat = %.4g, delta_target %.3g, "
+                 "rule: %s)%s%s", rec["label"], rec["name"], rec["material"], rec["E_before"], rec["E_after"],
+                 "n/a" if rec["G"] is None else f"{rec['G']:.4f}", rec["eta"], rec["E_hat"], rec["delta_target"],
+                 rec["rule"], " [clipped to max_step]" if rec["clipped"] else "",
+                 " [held at the solver ceiling]" if rec["capped_by_ceiling"] else "")
     cuda_peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else None
     seconds = {"read": round(t1 - t0, 4), "signals": round(t2 - t1, 4), "total": round(time.perf_counter() - t0, 4)}
     record = {
         "iteration": iteration, "variant": bcfg["variant"], "scaling": bcfg["scaling"],
-        "delta_target": bcfg["delta_target"], "deformation_measure": bcfg["deformation_measure"], "eta_rule": bcfg["eta_rule"], "max_step": bcfg.get("max_step"),
+        "delta_target": bcfg["delta_target"], "deformation_measure": bcfg["deformation_measure"],
+        "deformation_signal": bcfg.get("deformation_signal"), "failure_rule": bcfg.get("failure_rule"),
+        "ceiling": bcfg.get("ceiling"), "eta_rule": bcfg["eta_rule"], "max_step": bcfg.get("max_step"),
+        "static_stress": [float(v) for v in sstress], "static_delta": info["static_delta"],
+        "solver_ceiling": [float(v) for v in ceiling], "fate_reason": {str(k): v for k, v in (info.get("fate_reason") or {}).items()},
         "device": device, "dtype": str(dtype).replace("torch.", ""),
         "forward_stable": info["stable"], "missing_key_frames": info["missing"], "forward_cfl": info["cfl"],
         "instance_fates": info["fate"], "delta_broken": info["delta_broken"],
@@ -1189,11 +1392,19 @@ def _check_config(bcfg: dict) -> None:
         raise ConfigError("bgdo.deformation_measure", f"must be stretch or frobenius, got {bcfg.get('deformation_measure')!r}")
     if bcfg["eta_rule"] not in ("paper", "constant"):
         raise ConfigError("bgdo.eta_rule", f"must be paper or constant, got {bcfg['eta_rule']!r}")
-    for key in ("delta_target", "eta_coefficient", "reference_modulus", "cfl_limit"):
+    if bcfg.get("deformation_signal", "log_ratio") not in ("log_ratio", "difference"):
+        raise ConfigError("bgdo.deformation_signal", f"must be log_ratio or difference, got {bcfg.get('deformation_signal')!r}")
+    if bcfg.get("failure_rule", "static_load") not in ("static_load", "max_step"):
+        raise ConfigError("bgdo.failure_rule", f"must be static_load or max_step, got {bcfg.get('failure_rule')!r}")
+    if not isinstance(bcfg.get("ceiling", True), bool):
+        raise ConfigError("bgdo.ceiling", f"must be true or false, got {bcfg.get('ceiling')!r}")
+    for key in ("eta_coefficient", "reference_modulus", "cfl_limit", "reference_strain", "reference_height"):
+        if key not in bcfg:
+            continue
         v = bcfg[key]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
             raise ConfigError(f"bgdo.{key}", f"must be a positive number, got {v!r}")
-    for key in ("reference_pressure", "deformation_scale", "max_step"):
+    for key in ("reference_pressure", "deformation_scale", "max_step", "delta_target"):
         v = bcfg.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0):
             raise ConfigError(f"bgdo.{key}", f"must be a positive number or null, got {v!r}")
