@@ -71,7 +71,7 @@ def make_config(args, scenes_dir: Path) -> dict:
     for kv in args.bgdo:
         key, _, val = kv.partition("=")
         b[key] = _parse_value(val)
-    for kv in args.sim:
+    for kv in getattr(args, "sim", []):
         key, _, val = kv.partition("=")
         cfg["sim"][key] = _parse_value(val)
     return C.validate_config(cfg, "bgdo_robustness")
