@@ -1047,14 +1047,14 @@ def _instance_step(frames_k: list[dict], eta: float, bcfg: dict, sdelta: float, 
         return sum(t["weight"] * t["term"] for t in terms) / W, terms
     # log_ratio: the stress term averaged over all key frames, the deformation term
     # log(delta / delta_target) over the key frames after the rest state (frame 0: F = I)
-    S = sum(r.get("weight", 1) * stress_term(r["g_tilde"]) for r in usable) / W
     floor = target * DELTA_FLOOR
-    dfr = [r for r in usable if r["delta"] is not None and r["frame"] > 0]
-    Wd = float(sum(r.get("weight", 1) for r in dfr))
-    D = (sum(r.get("weight", 1) * math.log(max(r["delta"], floor) / target) for r in dfr) / Wd) if Wd > 0 else 0.0
     terms = [{"frame": r["frame"], "weight": r.get("weight", 1), "stress": stress_term(r["g_tilde"]),
               "log_ratio": (math.log(max(r["delta"], floor) / target)
                             if r["delta"] is not None and r["frame"] > 0 else None)} for r in usable]
+    S = sum(t["weight"] * t["stress"] for t in terms) / W
+    dfr = [t for t in terms if t["log_ratio"] is not None]
+    Wd = float(sum(t["weight"] for t in dfr))
+    D = sum(t["weight"] * t["log_ratio"] for t in dfr) / Wd if Wd > 0 else 0.0
     return S - (1.0 - eta) * D, terms
 
 
@@ -1208,14 +1208,6 @@ def iter_keyframes(path: str, frames: list):
             yield {"frame": frame, "time": time_, "dt": dt, **{k: g[k][...] for k in ("x", "v", "C", "F")}}
 
 
-def _first_positions(path: str, frames: list) -> np.ndarray:
-    """x  # [P, 3] of the first stored key frame (the rest state for the static load)."""
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        return np.asarray(f["keyframes"][frames[0][0]]["x"][...], dtype=np.float64)
-
-
 def resolve_device(cfg: dict) -> str:
     """'cpu' or 'cuda' from bgdo.device (null = the top-level ``device``; auto = CUDA if present)."""
     want = cfg.get("bgdo", {}).get("device") or cfg.get("device") or "auto"
@@ -1308,11 +1300,17 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
              device, table.label.shape[0], table.n_instances, len(meta["frames"]),
              [fr[1] for fr in meta["frames"]], bcfg["variant"], bcfg["scaling"])
     t1 = time.perf_counter()
-    frames = bgdo_signals(iter_keyframes(inputs["keyframes"], meta["frames"]), log_E, table, grid, scales,
+    first = {}  # x of the first key frame (the rest state), kept for the static load
+
+    def keep_first(frames_):
+        for kf in frames_:
+            first.setdefault("x", kf["x"])
+            yield kf
+
+    frames = bgdo_signals(keep_first(iter_keyframes(inputs["keyframes"], meta["frames"])), log_E, table, grid, scales,
                           device=device, dtype=dtype, log=log, measure=bcfg["deformation_measure"])
     info = unstable_run_info(meta, params["instances"], grid, float(bcfg["cfl_limit"]))
-    x0 = _first_positions(inputs["keyframes"], meta["frames"])
-    sstress = static_stress(x0, meta["label"], params["instances"], grid)
+    sstress = static_stress(first["x"], meta["label"], params["instances"], grid)
     E_now = np.exp(log_E.detach().cpu().double().numpy())
     info["static_delta"] = [float(s_ / e_) for s_, e_ in zip(sstress, E_now)]
     rec_sim = (meta.get("sim_config") or {}).get("sim") or cfg.get("sim") or {}
