@@ -1,4 +1,4 @@
-"""Tests of BGDO (src/physgs_steps/bgdo.py): the torch pseudo step against an independent
+"""Tests of BGDO (src/physgs_steps/bgdo/): the torch pseudo step against an independent
 NumPy implementation of docs/CONTRACTS.md and against the Taichi solver, the SVD backward,
 the signals, the update rule of both readings of the paper, and the stage."""
 from __future__ import annotations
@@ -647,9 +647,9 @@ def test_failing_instances_from_message():
     msg = ("forward_sim: the simulation became unstable at frame 6 (t = 0.200 s): volume ratio J = det F fell to "
            "0.02 (limit sim.stability.j_min = 0.05), in instance 'duck' (rubber: fixed_corotated/identity, E=30 Pa, "
            "nu=0.4, density=1100 kg/m^3) (also affected: 'stone'). The material cannot carry the load")
-    assert B._failing_instances(msg, ["duck", "stone", "bear"]) == [0, 1]
-    assert B._failing_instances("something else", ["duck"]) is None
-    assert B._failing_instances(None, ["duck"]) is None
+    assert B.failing_instances(msg, ["duck", "stone", "bear"]) == [0, 1]
+    assert B.failing_instances("something else", ["duck"]) is None
+    assert B.failing_instances(None, ["duck"]) is None
 
 
 def test_unstable_run_exploded_and_broken():

@@ -1,0 +1,430 @@
+"""The torch mirror of one MLS-MPM substep (docs/CONTRACTS.md "MPM step"): constitutive laws,
+return maps, the per-instance material table and the differentiable pseudo step BGDO runs
+from a stored key frame.  Overview: :mod:`physgs_steps.bgdo`."""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .. import materials_kb
+
+# ----------------------------------------------------------------------------- model names
+ELASTICITY = materials_kb.ELASTICITY_MODELS  # canonical names, docs/CONTRACTS.md
+PLASTICITY = materials_kb.PLASTICITY_MODELS
+
+SIG_FLOOR = 1e-6  # logs use log(max(sig, 1e-6)) (CONTRACTS.md, SVD convention)
+J_FLOOR = 1e-6    # neo-Hookean: J clamped to >= 1e-6 inside the log
+SVD_GAP = 1e-6    # smallest |s_j^2 - s_i^2| used in the SVD backward (repeated singular values)
+
+
+def canonical_elasticity(name: str, key: str = "elasticity") -> str:
+    """The canonical elasticity name for ``name`` (any spelling materials_kb accepts, e.g. the
+    alias ``sigma`` -> stvk_hencky); ConfigError naming ``key`` if unknown."""
+    return materials_kb.normalize_elasticity(name, key)
+
+
+def canonical_plasticity(name: str, key: str = "plasticity") -> str:
+    """The canonical plasticity name for ``name`` (``sigma`` -> j_clamp); ConfigError if unknown."""
+    return materials_kb.normalize_plasticity(name, key)
+
+
+# ----------------------------------------------------------------------------- SVD
+class _SVD3(torch.autograd.Function):
+    """Batched 3x3 SVD ``F = U diag(sig) V^T`` with U, V proper rotations (det +1).
+
+    The forward pass is ``torch.linalg.svd`` (in float64) followed by the sign fix of
+    CONTRACTS.md (a reflection moves into the last singular value, which may then be
+    negative). The backward pass is the closed-form SVD derivative with the factor
+    ``1 / (s_j^2 - s_i^2)`` kept finite for repeated singular values (F = I is the most
+    common state in a simulation; torch's own backward returns NaN there).
+    """
+
+    @staticmethod
+    def forward(ctx, F):  # F [B, 3, 3]
+        A = F.detach().to(torch.float64)
+        U, S, Vh = torch.linalg.svd(A)
+        V = Vh.transpose(-1, -2).clone()
+        U = U.clone()
+        fu = torch.linalg.det(U) < 0
+        fv = torch.linalg.det(V) < 0
+        U[..., :, 2] = torch.where(fu[:, None], -U[..., :, 2], U[..., :, 2])
+        V[..., :, 2] = torch.where(fv[:, None], -V[..., :, 2], V[..., :, 2])
+        S = S.clone()
+        S[:, 2] = torch.where(fu ^ fv, -S[:, 2], S[:, 2])
+        U, S, V = U.to(F.dtype), S.to(F.dtype), V.to(F.dtype)
+        ctx.save_for_backward(U, S, V)
+        return U, S, V
+
+    @staticmethod
+    def backward(ctx, gU, gS, gV):
+        U, S, V = ctx.saved_tensors
+        dt = U.dtype
+        U64, S64, V64 = U.double(), S.double(), V.double()
+        gU = torch.zeros_like(U64) if gU is None else gU.double()
+        gS = torch.zeros_like(S64) if gS is None else gS.double()
+        gV = torch.zeros_like(V64) if gV is None else gV.double()
+        s2 = S64 * S64
+        d = s2[:, None, :] - s2[:, :, None]  # d_ij = s_j^2 - s_i^2
+        sign = torch.where(d >= 0, 1.0, -1.0).to(d.dtype)
+        d = torch.where(d.abs() < SVD_GAP, sign * SVD_GAP, d)
+        f = 1.0 / d
+        eye = torch.eye(3, dtype=d.dtype, device=d.device)
+        f = f * (1 - eye)
+        M = U64.transpose(-1, -2) @ gU
+        N = V64.transpose(-1, -2) @ gV
+        Sd = torch.diag_embed(S64)
+        inner = (f * (M - M.transpose(-1, -2))) @ Sd + Sd @ (f * (N - N.transpose(-1, -2))) + torch.diag_embed(gS)
+        gF = U64 @ inner @ V64.transpose(-1, -2)
+        return gF.to(dt)
+
+
+def svd3(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """SVD of F  # [B, 3, 3] -> U [B, 3, 3], sig [B, 3], V [B, 3, 3] (det U = det V = +1)."""
+    if F.shape[0] == 0:
+        z = F.new_zeros((0, 3, 3))
+        return z, F.new_zeros((0, 3)), z.clone()
+    return _SVD3.apply(F)
+
+
+def _eye(n: int, like: torch.Tensor) -> torch.Tensor:
+    return torch.eye(3, dtype=like.dtype, device=like.device).expand(n, 3, 3)
+
+
+# ----------------------------------------------------------------------------- constitutive laws
+def lame(E: torch.Tensor, nu: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lame parameters from Young's modulus and Poisson's ratio.  # E [B], nu [B] -> mu [B], lam [B]"""
+    mu = E / (2.0 * (1.0 + nu))
+    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    return mu, lam
+
+
+def kirchhoff(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: str) -> torch.Tensor:
+    """Kirchhoff stress tau = P F^T of one elasticity model (CONTRACTS.md table).
+
+    F  # [B, 3, 3] elastic deformation gradient
+    mu, lam  # [B] Lame parameters (Pa)
+    returns tau  # [B, 3, 3] (Pa)
+    """
+    model = canonical_elasticity(model)
+    B = F.shape[0]
+    I = _eye(B, F)
+    J = torch.linalg.det(F)
+    if model == "fixed_corotated":
+        U, sig, V = svd3(F)
+        R = U @ V.transpose(-1, -2)
+        return 2.0 * mu[:, None, None] * (F - R) @ F.transpose(-1, -2) + (lam * J * (J - 1.0))[:, None, None] * I
+    if model == "neo_hookean":
+        logJ = torch.log(torch.clamp(J, min=J_FLOOR))
+        return mu[:, None, None] * (F @ F.transpose(-1, -2) - I) + (lam * logJ)[:, None, None] * I
+    if model == "stvk_hencky":
+        U, sig, V = svd3(F)
+        eps = torch.log(torch.clamp(sig, min=SIG_FLOOR))
+        d = 2.0 * mu[:, None] * eps + (lam * eps.sum(-1))[:, None]
+        return U @ torch.diag_embed(d) @ U.transpose(-1, -2)
+    if model == "volume":
+        kappa = 2.0 / 3.0 * mu + lam
+        gamma = 2.0
+        return (kappa * (J - torch.pow(J, 1.0 - gamma)))[:, None, None] * I
+    # fluid
+    return (lam * J * (J - 1.0))[:, None, None] * I
+
+
+@dataclass
+class PlasticParams:
+    """Per-particle plasticity parameters (each [B]); unused ones may hold anything finite."""
+
+    yield_stress: torch.Tensor    # [B] Pa (von Mises)
+    friction_angle: torch.Tensor  # [B] degrees (Drucker-Prager)
+    cohesion: torch.Tensor        # [B] dimensionless log-strain offset (Drucker-Prager)
+    j_min: torch.Tensor           # [B] (J-clamp)
+    j_max: torch.Tensor           # [B] (J-clamp)
+
+    def subset(self, idx: torch.Tensor) -> "PlasticParams":
+        return PlasticParams(*(getattr(self, k)[idx] for k in ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max")))
+
+
+def _safe_unit(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(|v|, v / |v|) for v  # [B, 3], with a finite direction (and gradient) where |v| = 0."""
+    n2 = (v * v).sum(-1)
+    pos = n2 > 0
+    n = torch.sqrt(torch.where(pos, n2, torch.ones_like(n2)))
+    unit = v / n[:, None]
+    return torch.where(pos, n, torch.zeros_like(n)), torch.where(pos[:, None], unit, torch.zeros_like(unit))
+
+
+def _signed_cbrt(J: torch.Tensor) -> torch.Tensor:
+    return torch.sign(J) * torch.pow(J.abs(), 1.0 / 3.0)
+
+
+def return_map(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, pp: PlasticParams, model: str) -> torch.Tensor:
+    """Plastic return map of a trial deformation gradient (CONTRACTS.md table).
+
+    F  # [B, 3, 3] trial elastic deformation gradient
+    mu, lam  # [B] Lame parameters (Pa)
+    returns F  # [B, 3, 3] projected elastic deformation gradient
+    """
+    model = canonical_plasticity(model)
+    B = F.shape[0]
+    if model == "identity":
+        return F
+    I = _eye(B, F)
+    if model == "j_clamp":
+        J = torch.linalg.det(F)
+        Jc = torch.minimum(torch.maximum(J, pp.j_min), pp.j_max)
+        return _signed_cbrt(Jc)[:, None, None] * I
+    if model == "fluid":
+        J = torch.linalg.det(F)
+        return _signed_cbrt(J)[:, None, None] * I
+    U, sig, V = svd3(F)
+    eps = torch.log(torch.clamp(sig, min=SIG_FLOOR))
+    if model == "von_mises":
+        eps_hat = eps - eps.mean(-1, keepdim=True)
+        n, unit = _safe_unit(eps_hat)
+        dg = n - pp.yield_stress / (2.0 * mu)
+        eps = torch.where((dg > 0)[:, None], eps - dg[:, None] * unit, eps)
+        return U @ torch.diag_embed(torch.exp(eps)) @ V.transpose(-1, -2)
+    # drucker_prager
+    c = pp.cohesion[:, None]
+    e = eps - c
+    sphi = torch.sin(torch.deg2rad(pp.friction_angle))
+    alpha = math.sqrt(2.0 / 3.0) * 2.0 * sphi / (3.0 - sphi)
+    tr = e.sum(-1)
+    e_hat = e - e.mean(-1, keepdim=True)
+    n, unit = _safe_unit(e_hat)
+    dg = n + (3.0 * lam + 2.0 * mu) / (2.0 * mu) * tr * alpha
+    e_proj = torch.where((dg > 0)[:, None], e - dg[:, None] * unit, e)
+    e = torch.where((tr >= 0)[:, None], torch.zeros_like(e), e_proj)
+    return U @ torch.diag_embed(torch.exp(e + c)) @ V.transpose(-1, -2)
+
+
+# ----------------------------------------------------------------------------- materials
+@dataclass
+class InstanceTable:
+    """Per-instance material description (K instances) plus the per-particle instance ids.
+
+    label  # [P] int64 instance id of every particle
+    vol  # [P] particle volume in domain units^3
+    nu, density  # [K]
+    elasticity, plasticity: K canonical model names
+    plastic: PlasticParams with [K] tensors
+    """
+
+    label: torch.Tensor
+    vol: torch.Tensor
+    nu: torch.Tensor
+    density: torch.Tensor
+    elasticity: list
+    plasticity: list
+    plastic: PlasticParams
+    names: list = field(default_factory=list)
+
+    @property
+    def n_instances(self) -> int:
+        return int(self.nu.shape[0])
+
+    def select(self, idx: torch.Tensor) -> "InstanceTable":
+        """The same instances with only the particles ``idx``  # [P'] int64."""
+        return InstanceTable(self.label[idx], self.vol[idx], self.nu, self.density, list(self.elasticity),
+                             list(self.plasticity), self.plastic, list(self.names))
+
+    def to(self, device) -> "InstanceTable":
+        p = self.plastic
+        return InstanceTable(self.label.to(device), self.vol.to(device), self.nu.to(device), self.density.to(device),
+                             list(self.elasticity), list(self.plasticity),
+                             PlasticParams(*(getattr(p, k).to(device) for k in ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max"))),
+                             list(self.names))
+
+
+_PLASTIC_DEFAULTS = {"yield_stress": math.inf, "friction_angle": 30.0, "cohesion": 0.0, "j_min": 0.05, "j_max": 1.2}
+
+
+def instance_table(instances: list[dict], label, vol, dtype=torch.float32, device="cpu", source: str = "params.json") -> InstanceTable:
+    """Build the table from params.json ``instances`` (sorted by ``label``) and particle arrays.
+
+    label  # [P] int instance id per particle (0..K-1)
+    vol  # [P] particle volume, domain units^3
+    """
+    from ..errors import InputError
+
+    by_label = {}
+    for i, inst in enumerate(instances):
+        try:
+            by_label[int(inst["label"])] = inst
+        except (KeyError, TypeError, ValueError):
+            raise InputError(source, f"instances[{i}] has no integer 'label'") from None
+    K = len(by_label)
+    if sorted(by_label) != list(range(K)):
+        raise InputError(source, f"instance labels must be 0..K-1, got {sorted(by_label)}")
+    label_np = np.asarray(label)
+    if label_np.size and (label_np.min() < 0 or label_np.max() >= K):
+        raise InputError(source, f"particle labels span {label_np.min()}..{label_np.max()} but params has {K} instances")
+    nu, rho, el, pl, names = [], [], [], [], []
+    pvals = {k: [] for k in _PLASTIC_DEFAULTS}
+    for k in range(K):
+        inst = by_label[k]
+        where = f"instances[label={k}]"
+        for key in ("E", "nu", "density"):
+            v = inst.get(key)
+            if not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise InputError(source, f"{where}.{key} must be a finite number, got {v!r}")
+        if not (0.0 <= inst["nu"] < 0.5):
+            raise InputError(source, f"{where}.nu = {inst['nu']} is outside [0, 0.5)")
+        if inst["density"] <= 0 or inst["E"] <= 0:
+            raise InputError(source, f"{where}: E and density must be > 0 (E={inst['E']}, density={inst['density']})")
+        nu.append(float(inst["nu"]))
+        rho.append(float(inst["density"]))
+        el.append(canonical_elasticity(str(inst.get("elasticity")), f"{source}: {where}.elasticity"))
+        pl.append(canonical_plasticity(str(inst.get("plasticity")), f"{source}: {where}.plasticity"))
+        names.append(str(inst.get("name", f"instance{k}")))
+        pp = inst.get("plasticity_params") or {}
+        for key, default in _PLASTIC_DEFAULTS.items():
+            v = pp.get(key)
+            v = default if v is None else v
+            if not isinstance(v, (int, float)) or math.isnan(v):
+                raise InputError(source, f"{where}.plasticity_params.{key} must be a number or null, got {v!r}")
+            pvals[key].append(float(v))
+        if pl[-1] == "von_mises" and not math.isfinite(pvals["yield_stress"][-1]):
+            raise InputError(source, f"{where}: von_mises plasticity needs plasticity_params.yield_stress (Pa)")
+    t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
+    return InstanceTable(
+        label=torch.as_tensor(label_np.astype(np.int64), device=device),
+        vol=t(vol), nu=t(nu), density=t(rho), elasticity=el, plasticity=pl,
+        plastic=PlasticParams(*(t(pvals[k]) for k in ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max"))),
+        names=names,
+    )
+
+
+def log_E_from_instances(instances: list[dict], dtype=torch.float64, device="cpu") -> torch.Tensor:
+    """log E per instance, ordered by label  # [K]"""
+    by_label = {int(i["label"]): float(i["E"]) for i in instances}
+    return torch.log(torch.as_tensor([by_label[k] for k in range(len(by_label))], dtype=dtype, device=device))
+
+
+# ----------------------------------------------------------------------------- the MPM step
+@dataclass
+class GridSpec:
+    """The background grid and the forces of the pseudo step.
+
+    n_grid: G nodes per axis; domain_size: L metres per domain unit; gravity: (3,) m/s^2;
+    boundary: 'slip' | 'sticky' domain walls on the ``bound`` outermost nodes per side.
+    """
+
+    n_grid: int
+    domain_size: float = 1.0
+    gravity: tuple = (0.0, 0.0, -9.8)
+    boundary: str = "slip"
+    bound: int = 3
+
+
+_OFFSETS = torch.tensor(list(itertools.product(range(3), repeat=3)), dtype=torch.int64)  # [27, 3]
+
+
+def particle_stress(F: torch.Tensor, log_E_p: torch.Tensor, table: InstanceTable) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Kirchhoff stress of every particle from its instance's elasticity model.
+
+    F  # [P, 3, 3]; log_E_p  # [P] log Young's modulus of each particle's instance
+    returns tau  # [P, 3, 3] Pa, mu  # [P], lam  # [P]
+    """
+    E_p = torch.exp(log_E_p).to(F.dtype)
+    mu, lam = lame(E_p, table.nu[table.label])
+    tau = F.new_zeros(F.shape)
+    for model in sorted(set(table.elasticity)):
+        ks = [k for k, m in enumerate(table.elasticity) if m == model]
+        idx = torch.nonzero(torch.isin(table.label, torch.as_tensor(ks, device=F.device)), as_tuple=True)[0]
+        if idx.numel():
+            tau = tau.index_copy(0, idx, kirchhoff(F[idx], mu[idx], lam[idx], model))
+    return tau, mu, lam
+
+
+def plastic_projection(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, table: InstanceTable) -> torch.Tensor:
+    """Each particle's plasticity return map.  # F [P, 3, 3], mu, lam [P] -> [P, 3, 3]"""
+    out = F
+    pp = table.plastic.subset(table.label)
+    for model in sorted(set(table.plasticity)):
+        if model == "identity":
+            continue
+        ks = [k for k, m in enumerate(table.plasticity) if m == model]
+        idx = torch.nonzero(torch.isin(table.label, torch.as_tensor(ks, device=F.device)), as_tuple=True)[0]
+        if idx.numel():
+            out = out.index_copy(0, idx, return_map(F[idx], mu[idx], lam[idx], pp.subset(idx), model))
+    return out
+
+
+def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec):
+    """One MLS-MPM/APIC substep after the stress (CONTRACTS.md steps 2-4, without plasticity).
+
+    All in SI: x  # [P, 3] m, v  # [P, 3] m/s, C  # [P, 3, 3] 1/s, F  # [P, 3, 3],
+    tau  # [P, 3, 3] Pa, p_mass  # [P] kg, p_vol  # [P] m^3.
+    returns x, v, C, F_trial (each like the input)
+    """
+    P = x.shape[0]
+    dev, dtp = x.device, x.dtype
+    G = int(grid.n_grid)
+    dx = grid.domain_size / G
+    inv_dx = 1.0 / dx
+    offs = _OFFSETS.to(dev)
+    xs = x * inv_dx
+    # stencil base; clamped to [0, G - 3] like the Taichi solver so every node is on the grid
+    base = torch.clamp(torch.floor(xs - 0.5).detach(), 0, G - 3)
+    fx = xs - base  # [P, 3]
+    w = torch.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2], dim=1)  # [P, 3, 3] (o, axis)
+    weight = w[:, offs[:, 0], 0] * w[:, offs[:, 1], 1] * w[:, offs[:, 2], 2]  # [P, 27]
+    dpos = (offs[None].to(dtp) - fx[:, None, :]) * dx  # [P, 27, 3]
+    node = base.long()[:, None, :] + offs[None]  # [P, 27, 3] in [0, G - 1]
+    key = (node[..., 0] * G + node[..., 1]) * G + node[..., 2]
+    uniq, inv = torch.unique(key.reshape(-1), return_inverse=True)  # only the M touched nodes
+    M = uniq.shape[0]
+    affine = -dt * p_vol[:, None, None] * 4.0 * inv_dx * inv_dx * tau + p_mass[:, None, None] * C  # [P, 3, 3]
+    mom = p_mass[:, None, None] * v[:, None, :] + torch.einsum("pij,pkj->pki", affine, dpos)  # [P, 27, 3]
+    grid_mv = x.new_zeros((M, 3)).index_add(0, inv, (weight[..., None] * mom).reshape(-1, 3))
+    grid_m = x.new_zeros((M,)).index_add(0, inv, (weight * p_mass[:, None]).reshape(-1))
+    has_mass = grid_m > 0
+    gv = grid_mv / torch.where(has_mass, grid_m, torch.ones_like(grid_m))[:, None]
+    g = torch.as_tensor(grid.gravity, dtype=dtp, device=dev)
+    gv = torch.where(has_mass[:, None], gv + dt * g, torch.zeros_like(gv))
+    gv = _walls(gv, uniq, G, grid)
+    gvp = gv[inv].reshape(P, 27, 3)
+    new_v = (weight[..., None] * gvp).sum(1)
+    new_C = 4.0 * inv_dx * inv_dx * torch.einsum("pk,pki,pkj->pij", weight, gvp, dpos)
+    new_x = x + dt * new_v
+    I = _eye(P, F)
+    F_trial = (I + dt * new_C) @ F
+    return new_x, new_v, new_C, F_trial
+
+
+def _walls(gv: torch.Tensor, uniq: torch.Tensor, G: int, grid: GridSpec) -> torch.Tensor:
+    """Domain-wall boundary conditions on grid velocities.  # gv [M, 3], uniq [M] node keys"""
+    k = uniq
+    idx = torch.stack([k // (G * G), (k // G) % G, k % G], dim=-1)  # [M, 3]
+    low = idx < grid.bound
+    high = idx > G - grid.bound
+    if grid.boundary == "sticky":
+        wall = (low | high).any(-1, keepdim=True)
+        return torch.where(wall, torch.zeros_like(gv), gv)
+    out_of_domain = (low & (gv < 0)) | (high & (gv > 0))
+    return torch.where(out_of_domain, torch.zeros_like(gv), gv)
+
+
+def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTable, grid: GridSpec) -> dict:
+    """One differentiable MPM substep from a stored state, log E per instance as the leaf.
+
+    state: domain units, each a tensor: x  # [P, 3], v  # [P, 3], C  # [P, 3, 3], F  # [P, 3, 3]
+    log_E  # [K] natural log of Young's modulus (Pa) per instance
+    returns {"x", "v", "C", "F"} after the substep (domain units) and "tau"  # [P, 3, 3] Pa, the
+    Kirchhoff stress of the input state; "mu", "lam"  # [P]; "log_E_p"  # [P] = log_E[label]
+    (differentiate with respect to it for per-particle derivatives).
+    """
+    L = float(grid.domain_size)
+    F = state["F"]
+    log_E_p = log_E[table.label]
+    tau, mu, lam = particle_stress(F, log_E_p, table)
+    p_vol = table.vol * L ** 3
+    p_mass = table.density[table.label] * p_vol
+    x, v, C, F_trial = mpm_step(state["x"] * L, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid)
+    F_new = plastic_projection(F_trial, mu, lam, table)
+    return {"x": x / L, "v": v / L, "C": C, "F": F_new, "tau": tau, "mu": mu, "lam": lam, "log_E_p": log_E_p}
+
