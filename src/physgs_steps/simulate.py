@@ -15,7 +15,9 @@ simulate with :mod:`physgs_steps.mpm` under ``cfg["sim"]`` (sim.schema.yaml) and
 * ``run_final`` writes ``final.h5``: positions and deformation gradients of the visible
   gaussians (rows of scene.ply, i.e. non-filled particles) for every frame, one gzip chunk per
   frame.  An unstable run stops with a :class:`SimulationError` naming the instance, its
-  material and parameters and what to change; no output is written.
+  material and parameters and what to change; no output is written. With
+  ``sim.on_unstable: keep`` it writes the stable frames instead (fewer than ``n_frames``) with
+  ``stats.stable = false`` and the failure message (the benchmark's expected failures).
 """
 from __future__ import annotations
 
@@ -231,11 +233,12 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
     Nv = len(rows)
     with atomic_path(outputs["frames"]) as tmp:
         with h5py.File(tmp, "w") as f:
-            dx_ = f.create_dataset("x", (n_frames, Nv, 3), np.float32, chunks=(1, Nv, 3), **comp)
-            dF = f.create_dataset("F", (n_frames, Nv, 3, 3), np.float32, chunks=(1, Nv, 3, 3), **comp)
+            dx_ = f.create_dataset("x", (n_frames, Nv, 3), np.float32, chunks=(1, Nv, 3), maxshape=(None, Nv, 3), **comp)
+            dF = f.create_dataset("F", (n_frames, Nv, 3, 3), np.float32, chunks=(1, Nv, 3, 3),
+                                  maxshape=(None, Nv, 3, 3), **comp)
             f.create_dataset("gaussian_index", data=rows)
             times = np.arange(n_frames, dtype=np.float64) * stepper.frame_dt
-            f.create_dataset("time", data=times)
+            dt_ = f.create_dataset("time", data=times, maxshape=(None,))
 
             def on_frame(k: int, t: float, dt_next: float) -> None:
                 xs, Fs = solver.gather_rows(rows)
@@ -245,15 +248,21 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
             log.info("final run: %d frames at %g fps, %d visible gaussians", n_frames, stepper.fps, Nv)
             res = run_frames(solver, n_frames, stepper, th, on_frame, log, stage="final_sim")
             if not res.stable:
-                raise SimulationError(res.message)
-            stats = _stats(res, solver, {"n_frames": n_frames, "n_visible": Nv,
+                if cfg["sim"].get("on_unstable", "error") != "keep" or res.frames_done < 1:
+                    raise SimulationError(res.message)
+                # sim.on_unstable: keep -> the stable frames stay, the failure goes into the stats
+                for d in (dx_, dF, dt_):
+                    d.resize(res.frames_done, axis=0)
+                log.warning("final_sim unstable after frame %d: keeping frames 0..%d (sim.on_unstable: keep)",
+                            res.last_stable_frame, res.last_stable_frame)
+            stats = _stats(res, solver, {"n_frames": n_frames, "n_visible": Nv, "frames_written": res.frames_done,
                                          "write_seconds": round(res.callback_seconds, 3)})
             f.attrs["stats"] = json.dumps(stats)
             f.attrs["params"] = json.dumps(params)
             f.attrs["sim_config"] = json.dumps(_sim_config(cfg, solver, stepper), default=str)
-    log.info("final_sim: %d frames, %d substeps in %.1f s (+%.1f s first substep, %.1f s writing) -> %s",
-             n_frames, stats["substeps_total"], res.step_seconds, res.first_substep_seconds, res.callback_seconds,
-             outputs["frames"])
-    return {"substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
+    log.info("final_sim: %d frames%s, %d substeps in %.1f s (+%.1f s first substep, %.1f s writing) -> %s",
+             res.frames_done, "" if res.stable else " (UNSTABLE, kept)", stats["substeps_total"], res.step_seconds,
+             res.first_substep_seconds, res.callback_seconds, outputs["frames"])
+    return {"stable": res.stable, "substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
             "particle_substeps_per_second": stats["particle_substeps_per_second"]}
 

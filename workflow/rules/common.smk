@@ -14,9 +14,11 @@ REG = P.Registry(config, SCENES)
 DEVICE = config["device"]
 
 
+# A scene folder is a scene name, or a benchmark run folder benchmark/<scale>/runs/<name>
+# (physgs_steps.benchmark.spec); a target adds /ablations/<name> (benchmark: /variants/<name>).
 wildcard_constraints:
-    scene=r"[A-Za-z0-9_\-]+",
-    target=r"[A-Za-z0-9_\-]+(/ablations/[A-Za-z0-9_\-]+)?",
+    scene=r"(benchmark/(smoke|cpu|full)/runs/)?[A-Za-z0-9_\-]+",
+    target=r"[A-Za-z0-9_\-]+(/ablations/[A-Za-z0-9_\-]+)?|benchmark/(smoke|cpu|full)/runs/[A-Za-z0-9_\-]+(/variants/[A-Za-z0-9_\-]+)?",
     cluster_id=r"[A-Za-z0-9_\-]+",
     fill_id=r"[A-Za-z0-9_\-]+",
     params_id=r"[A-Za-z0-9_\-]+",
@@ -83,3 +85,42 @@ def render_inputs(w):
 def report_jobs(w):
     plan = REG.plan(w.target)
     return [{"rule": r, "step": s, "benchmark": plan.benchmark_path(r, s)} for r, s in plan.jobs()]
+
+
+# ---- the benchmark (workflow/rules/benchmark.smk)
+
+from physgs_steps.benchmark import spec as BS
+
+BENCH_SCALE = config["benchmark"]["scale"]
+BENCH_SCALES = "|".join(BS.SCALES)
+BENCH_TABLES = ("comparison", "comparison_scenes", "ablations", "robustness", "fill", "bgdo_change", "stress_vs_E")
+
+
+def bench_spec(scale):
+    return BS.spec_for(config, scale)
+
+
+def bench_report_path(name, scale=BENCH_SCALE):
+    return f"{BS.report_dir(scale)}/{name}"
+
+
+def bench_stress_plan(w):
+    spec, name = BS.spec_for_key(config, w.scene)
+    if name != spec.stress["scene"]:
+        raise C.ConfigError("benchmark.stress.scene", f"stress runs are made for '{spec.stress['scene']}', not '{name}'")
+    return spec.plan(name)
+
+
+def bench_stress_cfg(w):
+    spec, _ = BS.spec_for_key(config, w.scene)
+    return spec.stress_cfg(w.stress_id, int(w.index))
+
+
+def bench_stage_cfg(w):
+    spec = bench_spec(w.scale)
+    return {"scale": w.scale, "device": DEVICE, "published": bool(spec.settings["published"]),
+            "runs": spec.stage_runs(), "sizes": spec.manifest()["sizes"]}
+
+
+def bench_report_cfg(w):
+    return bench_spec(w.scale).manifest()
