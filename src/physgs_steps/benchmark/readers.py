@@ -129,6 +129,20 @@ def final_stats(path: str | Path | None) -> tuple[dict | None, str | None]:
     return stats, None
 
 
+def forward_stats(path: str | Path) -> dict | None:
+    """The ``stats`` attribute of a forward.h5 (stability, substeps, solver device memory), or None."""
+    if not Path(path).is_file():
+        return None
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            raw = f.attrs.get("stats")
+        return json.loads(raw) if raw is not None else None
+    except (OSError, TypeError, ValueError):
+        return None
+
+
 def run_stable(stats: dict | None) -> Cell:
     if stats is None:
         return missing("no final.h5 stats")
@@ -256,7 +270,7 @@ def fill_quality(report: dict | None) -> dict:
             parts.append(f"{name} {rec.get('filled_inside')}" + (f" ({float(cov):.0%})" if _finite(cov) else ""))
         leakage = Cell("; ".join(parts))
     elif isinstance(leak, dict):
-        leakage = Cell("none (no empty region)")
+        leakage = Cell("no empty region in this scene")
     else:
         leakage = missing(why)
     secs = _get(report, "timings.fill.seconds")

@@ -314,5 +314,5 @@ def fill_label(fill: dict) -> str:
     if m == "global":
         return "global (PhysGaussian)"
     if m == "none":
-        return "none (gaussians only)"
+        return "no filling (gaussians only)"
     return str(m)

@@ -41,6 +41,7 @@ class RunData:
     params0: dict | None = None
     jobs: list = field(default_factory=list)
     penetration: dict = field(default_factory=dict)
+    forward_stats: list = field(default_factory=list)
 
     @property
     def physical(self) -> dict:
@@ -55,6 +56,7 @@ def load_run(rec: dict, penetration: bool = True) -> RunData:
     d.params, _ = RD.read_json(rec.get("params"))
     d.params0, _ = RD.read_json(rec.get("params0"))
     d.jobs = [RD.job_record(j) for j in rec.get("jobs") or []]
+    d.forward_stats = [RD.forward_stats(p) for p in rec.get("forward") or []]
     if penetration and Path(rec.get("final", "")).is_file():
         d.penetration = PH.penetration(rec["final"], rec.get("labels"), rec.get("ground_height"),
                                        rec.get("domain_size", 1.0))
@@ -215,9 +217,10 @@ def stage_rows(runs: list[RunData], device: str, published: bool) -> tuple[list[
                 rss = [j["max_rss_mb"] for j in jobs if j["max_rss_mb"] is not None]
                 rec["rss_gb"] = Cell(max(rss) / 1024.0) if rss else missing("no peak memory in the benchmark files")
                 gpu = [j["cuda_peak_mb"] for j in jobs if j["cuda_peak_mb"] is not None]
-                if stage in ("final sim", "full") and RD.device_memory_mb(d.stats) is not None \
-                        and (d.stats or {}).get("backend") == "cuda":
-                    gpu.append(RD.device_memory_mb(d.stats))
+                sims = ([d.stats] if stage in ("final sim", "full") else []) + \
+                    (d.forward_stats if stage in ("BGDO forward", "full") else [])
+                gpu += [RD.device_memory_mb(st) for st in sims
+                        if RD.device_memory_mb(st) is not None and (st or {}).get("backend") == "cuda"]
                 rec["gpu_gb"] = Cell(max(gpu) / 1024.0) if gpu else missing(
                     "no GPU was used (CPU run)" if device != "cuda" else "the stage records no GPU memory")
             per_scene.append(rec)
