@@ -125,6 +125,8 @@ class BenchmarkSpec:
         self.bench_cfg = copy.deepcopy(cfg)
         self.bench_cfg["ablations"] = {v.name: v.overlay for v in self.variants if v.name is not None}
         self._scene_cfgs: dict[str, dict] = {}
+        self._plans: dict[tuple, Plan] = {}
+        self._manifest: dict | None = None
 
     # ------------------------------------------------------------------ variants
     def _variants(self) -> list[Variant]:
@@ -202,8 +204,10 @@ class BenchmarkSpec:
         return [v for v in self.variants if robust or v.role not in ("robustness", "robustness_no_bgdo")]
 
     def plan(self, name: str, variant: str | None = None) -> Plan:
-        return make_plan(self.bench_cfg, name, variant, scene_cfg=self.scene_cfg(name), key=self.key(name),
-                         variant_dir="variants")
+        if (name, variant) not in self._plans:
+            self._plans[(name, variant)] = make_plan(self.bench_cfg, name, variant, scene_cfg=self.scene_cfg(name),
+                                                     key=self.key(name), variant_dir="variants")
+        return self._plans[(name, variant)]
 
     def plans(self, name: str) -> list[Plan]:
         return [self.plan(name, v.name) for v in self.variants_of(name)]
@@ -261,6 +265,11 @@ class BenchmarkSpec:
 
     def manifest(self) -> dict:
         """Everything the report stage needs to know (its Snakemake params)."""
+        if self._manifest is None:
+            self._manifest = self._make_manifest()
+        return copy.deepcopy(self._manifest)
+
+    def _make_manifest(self) -> dict:
         runs = [self.run_record(s, v.name) for s in self.scenes for v in self.variants_of(s)]
         sim = self.plan(self.scenes[0]).cfgs["sim"]["sim"]
         render = self.plan(self.scenes[0]).cfgs["render"]["render"]
