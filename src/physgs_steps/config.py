@@ -179,7 +179,7 @@ def _validated_section(section: str, merged: dict, src: str) -> dict:
     import json
 
     try:
-        key = (section, json.dumps(merged, sort_keys=True))
+        key = (section, json.dumps(merged))  # key order kept: Snakemake compares params as written
     except (TypeError, ValueError):  # not JSON-able: validate without the memo
         return validate(merged, load_schema(f"{section}.schema.yaml"), src, section)
     if key not in _SECTION_MEMO:

@@ -117,10 +117,8 @@ def bench_stress_cfg(w):
 
 
 def bench_stage_cfg(w):
-    spec = bench_spec(w.scale)
-    return {"scale": w.scale, "device": DEVICE, "published": bool(spec.settings["published"]),
-            "runs": spec.stage_runs(), "sizes": spec.manifest()["sizes"]}
+    return bench_spec(w.scale).stage_cfg()
 
 
 def bench_report_cfg(w):
-    return bench_spec(w.scale).manifest()
+    return bench_spec(w.scale).report_cfg()

@@ -288,6 +288,19 @@ class BenchmarkSpec:
                        "params0": stress_plan.path("params0")},
         }
 
+    def report_cfg(self) -> dict:
+        """The report job's Snakemake params: small, and changing whenever the manifest does
+        (the job rebuilds the manifest from the config: :func:`report_manifest`)."""
+        return {"scale": self.scale, "manifest": short_hash(self.manifest())}
+
+    def stage_manifest(self) -> dict:
+        man = self.manifest()
+        return {"scale": self.scale, "device": man["device"], "published": man["published"], "sizes": man["sizes"],
+                "runs": self.stage_runs()}
+
+    def stage_cfg(self) -> dict:
+        return {"scale": self.scale, "manifest": short_hash(self.stage_manifest())}
+
     def stage_runs(self) -> list[dict]:
         """The physgs run of every scene (the stage table's input)."""
         return [self.run_record(s, None) for s in self.scenes]
@@ -325,3 +338,14 @@ def fill_label(fill: dict) -> str:
     if m == "none":
         return "no filling (gaussians only)"
     return str(m)
+
+
+def job_manifest(config: dict, params: dict, kind: str = "report") -> dict:
+    """The manifest a report job's params name (``kind`` report or stages), rebuilt from the
+    workflow's config inside the job; a digest that no longer matches is a stale job."""
+    spec = spec_for(config, params["scale"])
+    man = spec.manifest() if kind == "report" else spec.stage_manifest()
+    if short_hash(man) != params.get("manifest"):
+        raise ConfigError("benchmark", f"the {kind} job's manifest {params.get('manifest')} is not the config's "
+                                       f"({short_hash(man)}); run snakemake again")
+    return man
