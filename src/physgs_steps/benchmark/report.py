@@ -63,7 +63,9 @@ def cell_text(v, fmt: str, notes: Notes) -> str:
     return R.format_value(v, fmt)
 
 
-def md_table(rows: list[dict], cols: list[Col], notes: Notes) -> str:
+def md_table(rows: list[dict], cols: list[Col], notes: Notes, empty: str = "no rows at this scale") -> str:
+    if not rows:
+        return f"_({empty})_\n"
     return R.markdown_table([{c.key: cell_text(r.get(c.key), c.fmt, notes) for c in cols} for r in rows],
                             [R.Column(c.key, c.header) for c in cols])
 
@@ -142,6 +144,7 @@ def run_stages(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> d
     rows, per_scene = T.stage_rows(runs, cfg.get("device", "auto"), bool(cfg.get("published", True)))
     notes = Notes()
     prov = _provenance(cfg)
+    prov.update(backends_used(runs))
     md = [f"# Stage time and memory (scale: {cfg['scale']})\n", R.provenance_markdown(prov),
           "Averaged over the scenes' physgs runs (min/max over scenes); time = wall seconds of the stage's "
           "job(s) from Snakemake's benchmark files (process start-up included), in stage = inside the stage "
@@ -246,7 +249,7 @@ def run_report(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> d
            "and from its knowledge-base E (KB), then BGDO; band = the material's E_range in the knowledge base. "
            f"{n_in} of {len(rob)} instance starts end in their band, {n_st} of {len(rob)} final runs are stable "
            "with BGDO. A run that failed is a row saying so (`sim.on_unstable: keep`).\n",
-           md_table(rob, ROBUST_COLS, notes), "\n"]
+           md_table(rob, ROBUST_COLS, notes, "no built-in scene at this scale"), "\n"]
     stress_docs = [json.loads(Path(p).read_text()) for p in inputs.get("stress") or []]
     srows = T.stress_rows(stress_docs)
     rows_out["stress_vs_E"] = srows
