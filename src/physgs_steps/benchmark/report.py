@@ -114,7 +114,7 @@ STAGE_COLS = [Col("stage", "stage"), Col("scenes", "scenes"), Col("seconds", "ti
               Col("published_memory", "memory, published")]
 ROBUST_COLS = [Col("scene", "scene"), Col("instance", "instance (material)"), Col("band", "band (Pa)"),
                Col("start", "start E0 (Pa)"), Col("E_chain", "E0 -> E1 -> ... (Pa)"), Col("in_band", "in band"),
-               Col("fate", "last BGDO update"), Col("stable", "final stable (BGDO)"),
+               Col("fate", "last BGDO update: fate (rule)"), Col("stable", "final stable (BGDO)"),
                Col("stable_without_bgdo", "final stable (no BGDO)")]
 FILL_COLS = [Col("scene", "scene"), Col("method", "method"), Col("n_filled", "filled", "{:.0f}"),
              Col("precision", "precision", "{:.3f}"), Col("recall", "recall", "{:.3f}"),

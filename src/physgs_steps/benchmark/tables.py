@@ -279,9 +279,10 @@ def _fate(rec: dict | None) -> Cell:
     """The last BGDO update's fate and rule of an instance (ok / exploded / broken, and how E was set)."""
     if not rec:
         return missing("no BGDO update (bgdo.iterations 0)")
-    text = str(rec.get("fate"))
-    if rec.get("rule"):
-        text += f": {str(rec['rule']).split(':')[0]}"
+    fate, rule = str(rec.get("fate")), str(rec.get("rule") or "")
+    if rule.startswith(fate + ":"):
+        rule = rule.split(":", 1)[1].strip()
+    text = f"{fate} ({rule})" if rule else fate
     if rec.get("capped_by_ceiling"):
         text += " (solver ceiling)"
     return Cell(text)
