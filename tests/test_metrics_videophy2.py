@@ -19,7 +19,7 @@ from physgs_steps.errors import ConfigError
 from physgs_steps.metrics import videophy2, videophy2_official
 from physgs_steps.metrics.video import sample_indices
 
-from test_metrics import files, strict_json, write_final, write_video  # noqa: F401 (fixture)
+from test_metrics import files, strict_json  # noqa: F401 (files: a fixture)
 
 LOG = logging.getLogger("test.videophy2")
 PROMPT = "a jelly bear falls"
@@ -44,6 +44,7 @@ if mode == "crash":
     sys.stderr.write("Traceback (most recent call last):\nRuntimeError: CUDA error: no CUDA-capable device\n")
     sys.exit(3)
 if mode == "sleep":
+    open(os.environ["FAKE_PID_FILE"], "w").write(str(os.getpid()))
     time.sleep(60)
 if mode == "no_output":
     sys.exit(0)
@@ -193,15 +194,30 @@ def test_official_rater_failures_give_null_with_reason(files, fake_rater, mode, 
     assert e["reason"] and re.search(match, e["reason"], re.DOTALL), e["reason"]
 
 
-def test_official_rater_timeout_kills_it(files, fake_rater):
+def _alive(pid: int) -> bool:
+    try:
+        state = [ln for ln in open(f"/proc/{pid}/status") if ln.startswith("State:")][0]
+    except (OSError, IndexError):
+        return False
+    return "Z" not in state.split()[1]   # a zombie has exited
+
+
+def test_official_rater_timeout_kills_it(files, fake_rater, tmp_path):
     inputs, _ = files
     script, ckpt = fake_rater
+    pid_file = tmp_path / "rater.pid"
+    oc = template_cfg(script, ckpt, env={"FAKE_MODE": "sleep", "FAKE_PID_FILE": str(pid_file)}, timeout_s=1.5)
     t0 = time.perf_counter()
-    out = videophy2_official.rate(inputs["video"], PROMPT, ["sa"], template_cfg(script, ckpt, env={"FAKE_MODE": "sleep"},
-                                                                                 timeout_s=1.5), "linear", LOG)
+    out = videophy2_official.rate(inputs["video"], PROMPT, ["sa"], oc, "linear", LOG)
     assert time.perf_counter() - t0 < 20
     e = out["sa"]
     assert e["value"] is None and "timed out after 1.5 s" in e["reason"] and "official.timeout_s" in e["reason"]
+    pid = int(pid_file.read_text())
+    for _ in range(50):          # the rater (a child of the shell) was killed with its process group
+        if not _alive(pid):
+            break
+        time.sleep(0.1)
+    assert not _alive(pid)
 
 
 def test_missing_rater_and_missing_caption(files, fake_rater, tmp_path):
