@@ -1,4 +1,9 @@
 # Helpers shared by all rules: config validation, the artifact plan, resources.
+#
+# Problems stop Snakemake with one line on stderr ("physgs: <what is wrong, where, the valid
+# choices>") and exit status 1, never a traceback. A broken scene file stops only the
+# targets of that scene, when one is requested (plans are made on first use);
+# `physgs check` lists every problem of every scene file at once.
 import sys
 from pathlib import Path
 
@@ -6,12 +11,59 @@ sys.path.insert(0, str(Path(workflow.basedir) / "src"))
 
 from physgs_steps import config as C
 from physgs_steps import plan as P
+from physgs_steps.errors import ConfigError, PhysGSError
 
-C.validate_config(config)
 
-SCENES = sorted(p.stem for p in Path(config["scenes_dir"]).glob("*.yaml"))
+def fail(err):
+    """Stop with a one-line message and exit status 1 (at parse time or in an input function)."""
+    print(f"physgs: {err}", file=sys.stderr)
+    sys.exit(1)
+
+
+def config_layers():
+    """[(name, dict)] in the order Snakemake applied them: config/config.yaml, each
+    --configfile, then --config (for naming where a bad value came from)."""
+    settings = getattr(workflow, "config_settings", None)
+    layers = []
+    for f in ["config/config.yaml", *[str(f) for f in (getattr(settings, "configfiles", None) or [])]]:
+        try:
+            layers.append((f, C.read_yaml(f)))
+        except PhysGSError:
+            pass
+    layers.append(("--config", dict(getattr(settings, "config", None) or {})))
+    return layers
+
+
+try:
+    C.validate_config(config)
+except ConfigError as e:
+    fail(ConfigError(e.key, e.problem, C.origin_of(e.key.split(".")[0] if e.key == "<root>" else e.key,
+                                                   config_layers()) or e.source))
+
+SCENES, NO_SCENES = C.list_scenes(config)  # NO_SCENES: why there are none (a missing folder...)
 REG = P.Registry(config, SCENES)
 DEVICE = config["device"]
+
+
+def scene_problem(e):
+    """The message of a plan's problem; a scene file's own problem points at `physgs check`."""
+    in_file = getattr(e, "source", None) or getattr(e, "path", None)
+    return f"{e} (physgs check lists every problem of every scene file)" if in_file else str(e)
+
+
+def target_plan(target):
+    """The plan of a target (``bear``, ``bear/ablations/no_bgdo``), or stop with its problem."""
+    try:
+        return REG.plan(target)
+    except PhysGSError as e:
+        fail(scene_problem(e))
+
+
+def main_scene():
+    """`snakemake --cores 1` alone: the main job (bear), or the first scene of a custom scenes_dir."""
+    if not SCENES:
+        fail(NO_SCENES)
+    return "bear" if "bear" in SCENES else SCENES[0]
 
 
 wildcard_constraints:
@@ -25,13 +77,16 @@ wildcard_constraints:
 
 
 def plan_path(target, kind, step=None):
-    return REG.plan(target).path(kind, step)
+    return target_plan(target).path(kind, step)
 
 
 def plan_for(w, kind):
     """The plan that owns the artifact id in this job's output path."""
     ident = getattr(w, f"{kind}_id")
-    return REG.for_id(w.scene, kind, ident)
+    try:
+        return REG.for_id(w.scene, kind, ident)
+    except PhysGSError as e:
+        fail(scene_problem(e))
 
 
 def stage_cfg(kind, stage):
@@ -55,7 +110,7 @@ def runtime_min(stage):
 # ---- input functions of the rules
 
 def prepare_inputs(w):
-    sc = REG.plan(w.scene).cfgs["prepare"]["scene"]
+    sc = target_plan(w.scene).cfgs["prepare"]["scene"]
     kind, path = C.resolve_source(sc)
     return {"source": str(path)} if kind == "file" else {}
 
@@ -72,7 +127,7 @@ def bgdo_inputs(w):
 
 
 def render_inputs(w):
-    plan = REG.plan(w.target)
+    plan = target_plan(w.target)
     ins = {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform")}
     cam = plan.cfgs["render"]["scene"].get("camera") or {}
     if cam.get("mode") == "cameras_json":  # an INRIA training run's cameras.json
@@ -81,5 +136,5 @@ def render_inputs(w):
 
 
 def report_jobs(w):
-    plan = REG.plan(w.target)
+    plan = target_plan(w.target)
     return [{"rule": r, "step": s, "benchmark": plan.benchmark_path(r, s)} for r, s in plan.jobs()]

@@ -5,7 +5,7 @@ rule prepare:
         scene="results/{scene}/scene.ply",
         transform="results/{scene}/transform.json",
     params:
-        cfg=lambda w: REG.plan(w.scene).cfgs["prepare"],
+        cfg=lambda w: target_plan(w.scene).cfgs["prepare"],
     log:
         "results/{scene}/logs/prepare.log",
     benchmark:

@@ -6,7 +6,7 @@ rule render:
         contact_sheet="results/{target}/contact_sheet.png",
         report="results/{target}/render.json",
     params:
-        cfg=lambda w: REG.plan(w.target).cfgs["render"],
+        cfg=lambda w: target_plan(w.target).cfgs["render"],
     log:
         "results/{target}/logs/render.log",
     benchmark:
@@ -22,12 +22,12 @@ rule render:
 rule metrics:
     input:
         video="results/{target}/video.mp4",
-        frames=lambda w: REG.plan(w.target).path("final"),
-        params=lambda w: REG.plan(w.target).path("params"),
+        frames=lambda w: target_plan(w.target).path("final"),
+        params=lambda w: target_plan(w.target).path("params"),
     output:
         metrics="results/{target}/metrics.json",
     params:
-        cfg=lambda w: REG.plan(w.target).cfgs["metrics"],
+        cfg=lambda w: target_plan(w.target).cfgs["metrics"],
     log:
         "results/{target}/logs/metrics.log",
     benchmark:

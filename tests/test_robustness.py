@@ -1,0 +1,179 @@
+"""Careless input (issue #19): a bad scene file blocks only its own targets, numbers parse as
+people write them, problems are one-line messages (never tracebacks), `physgs check`."""
+from __future__ import annotations
+
+import copy
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from physgs_steps import config as C
+from physgs_steps import plan as P
+from physgs_steps.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+LINKED = ["Snakefile", "workflow", "config", "src", "tests", "profiles"]
+TINY = REPO / "tests" / "slurm" / "config.yaml"
+
+
+# ---------------------------------------------------------------------------- numbers
+def test_scientific_notation_and_string_numbers_are_accepted():
+    cfg = C.load_config()
+    c = copy.deepcopy(cfg)
+    # YAML 1.1 (Snakemake's config loader) reads 5e4 as a string; --config nests strings
+    c["sim"].update(domain_size="2.0e4", n_grid="32", n_frames=1.5e2)
+    c["bgdo"].update(forward_frames="null", ceiling="false", max_step="9.2")
+    c["render"]["background"] = ["1", "1e0", ".5"]
+    C.validate_config(c)
+    assert c["sim"]["domain_size"] == 2.0e4 and c["sim"]["n_grid"] == 32
+    assert c["sim"]["n_frames"] == 150 and isinstance(c["sim"]["n_frames"], int)
+    assert c["bgdo"]["forward_frames"] is None and c["bgdo"]["ceiling"] is False and c["bgdo"]["max_step"] == 9.2
+    assert c["render"]["background"] == [1.0, 1.0, 0.5]
+    for key, bad in (("n_grid", "wide"), ("n_grid", "3.5"), ("domain_size", "5e4 m"), ("domain_size", "inf")):
+        c2 = copy.deepcopy(cfg)
+        c2["sim"][key] = bad
+        with pytest.raises(ConfigError, match=rf"sim\.{key}"):
+            C.validate_config(c2)
+
+
+def test_scene_file_reads_yaml12_numbers(tmp_path):
+    p = tmp_path / "s.yaml"
+    p.write_text("source: builtin:bear\ninstances:\n  - {name: b, E: 5e4, density: 1E3, nu: .3}\n"
+                 "config: {sim: {domain_size: 2.0e4}}\n")
+    data = C.read_yaml(p)
+    assert data["instances"][0]["E"] == 5e4 and data["instances"][0]["density"] == 1e3
+    C.validate(data, C.load_schema("scene.schema.yaml"), str(p))
+    assert data["config"]["sim"]["domain_size"] == 2e4
+    p.write_text("source: builtin:bear\ninstances:\n  - {name: b, E: 'fifty kilopascal'}\n")
+    with pytest.raises(ConfigError, match=r"instances\.0\.E"):
+        C.validate(C.read_yaml(p), C.load_schema("scene.schema.yaml"), str(p))
+
+
+# ---------------------------------------------------------------------------- plans
+@pytest.fixture()
+def scenes(tmp_path, repo):
+    """A scene folder with one good scene and three broken ones."""
+    d = tmp_path / "scenes"
+    d.mkdir()
+    good = yaml.safe_load((repo / "config" / "scenes" / "bear.yaml").read_text())
+    good["builtin"] = {"n_gaussians": 2000, "seed": 0}
+    (d / "good.yaml").write_text(yaml.safe_dump(good))
+    (d / "wrongtype.yaml").write_text("source: builtin:bear\ninstances:\n  - {name: x, E: abc}\n")
+    (d / "syntax.yaml").write_text("source: builtin:bear\nprompt: [unclosed\n")
+    (d / "unknownkey.yaml").write_text("source: builtin:bear\ncamra: {fov_deg: 40}\n")
+    return d
+
+
+def test_registry_records_a_broken_scene_and_plans_the_others(scenes):
+    cfg = C.load_config()
+    cfg["scenes_dir"] = str(scenes)
+    names, why = C.list_scenes(cfg)
+    assert why is None and names == ["good", "syntax", "unknownkey", "wrongtype"]
+    reg = P.Registry(cfg, names)
+    assert reg.plan("good").scene == "good" and reg.plan("good/ablations/no_bgdo").ablation == "no_bgdo"
+    assert not reg.problems
+    with pytest.raises(ConfigError, match=r"instances\.0\.E.*wrongtype\.yaml"):
+        reg.plan("wrongtype")
+    with pytest.raises(Exception, match=r"syntax\.yaml: not valid YAML"):
+        reg.plan("syntax/ablations/no_ipf")
+    with pytest.raises(ConfigError, match="camra.*allowed keys"):
+        reg.for_id("unknownkey", "fill", "whatever")
+    with pytest.raises(ConfigError, match="unknown ablation 'nope'.*no_bgdo"):
+        reg.plan("good/ablations/nope")
+    with pytest.raises(ConfigError, match="unknown scene 'other'.*known scenes: good"):
+        reg.plan("other")
+
+
+def test_scenes_dir_problems(tmp_path):
+    cfg = C.load_config()
+    for value, needle in ((str(tmp_path / "nowhere"), "does not exist"), (str(tmp_path), "holds no scene file")):
+        cfg["scenes_dir"] = value
+        names, why = C.list_scenes(cfg)
+        assert names == [] and needle in str(why) and "scenes_dir" in str(why)
+
+
+# ---------------------------------------------------------------------------- snakemake
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("wf")
+    for name in LINKED:
+        (d / name).symlink_to(REPO / name)
+    return d
+
+
+def smk(cwd: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=300, stdin=subprocess.DEVNULL)
+
+
+def one_line_error(p: subprocess.CompletedProcess) -> str:
+    """The physgs message of a failed run: exit 1, one 'physgs:' line, no traceback."""
+    out = p.stdout + p.stderr
+    assert p.returncode == 1, out[-3000:]
+    assert "Traceback" not in out and "Exception" not in out, out[-3000:]
+    lines = [ln for ln in out.splitlines() if ln.startswith("physgs: ")]
+    assert len(lines) == 1, out[-3000:]
+    return lines[0]
+
+
+def test_bad_scene_next_to_a_good_one(run_dir, scenes):
+    cfg = ["--configfile", str(TINY), "--config", f"scenes_dir={scenes}"]
+    p = smk(run_dir, "-n", *cfg)  # the default target: the first scene, 'good'
+    assert p.returncode == 0, (p.stdout + p.stderr)[-3000:]
+    assert "results/good/video.mp4" in p.stdout
+    msg = one_line_error(smk(run_dir, "-n", "results/wrongtype/video.mp4", *cfg))
+    assert "wrongtype.yaml" in msg and "instances.0.E" in msg and "'abc'" in msg
+    msg = one_line_error(smk(run_dir, "-n", "results/syntax/scene.ply", *cfg))
+    assert "syntax.yaml: not valid YAML" in msg and "line 2" in msg
+    # the good scene really runs (its first stage) beside the broken ones
+    p = smk(run_dir, "results/good/scene.ply", *cfg)
+    assert p.returncode == 0, (p.stdout + p.stderr)[-3000:]
+    assert (run_dir / "results" / "good" / "scene.ply").stat().st_size > 0
+
+
+@pytest.mark.parametrize("args,needles", [
+    (["-n", "--config", "scenes_dir=no/such/folder"], ["scenes_dir", "does not exist"]),
+    (["-n", "--config", "scenes_dir=tests"], ["scenes_dir", "holds no scene file"]),
+    (["-n", "results/bear/ablations/nope/video.mp4"], ["unknown ablation 'nope'", "no_bgdo, no_ipf"]),
+    (["-n", "results/nosuch/video.mp4"], ["unknown scene 'nosuch'", "known scenes: basket_mat, bear"]),
+    (["-n", "--config", "device=gpu"], ["'device' (in --config)", "valid choices: auto, cpu, cuda"]),
+    (["-n", "--config", "sim={n_grid: 3"], ["'sim' (in --config)", "mapping is expected"]),
+    (["-n", "--config", "sim={n_grid: many}"], ["sim.n_grid", "'many' is not of type 'integer'"]),
+])
+def test_one_line_messages(run_dir, args, needles):
+    msg = one_line_error(smk(run_dir, *args))
+    for n in needles:
+        assert n in msg, msg
+
+
+def test_config_numbers_from_the_command_line(run_dir):
+    p = smk(run_dir, "-n", "--config", "sim={n_grid: 32, domain_size: 1.0e0}", "bgdo={forward_frames: 1.5e2}")
+    assert p.returncode == 0, (p.stdout + p.stderr)[-3000:]
+
+
+# ---------------------------------------------------------------------------- physgs check
+def test_physgs_check_lists_every_problem(tmp_path, scenes):
+    (scenes / "bad name.yaml").write_text("source: builtin:bear\n")
+    (scenes / "many.yaml").write_text(
+        "source: missing/file.ply\ninstances:\n  - {name: y, material: unobtainium}\n"
+        "camera: {mode: cameras_json, cameras_json: no/cameras.json}\nconfig: {sim: {n_grid: 4}}\n")
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text(yaml.safe_dump({"scenes_dir": str(scenes)}))
+    p = subprocess.run([sys.executable, "-m", "physgs_steps.cli", "--config", str(cfg), "check"], capture_output=True,
+                       text=True, timeout=300)
+    assert p.returncode == 1, p.stdout + p.stderr
+    lines = [ln for ln in p.stdout.splitlines() if ln.startswith(str(scenes))]
+    text = "\n".join(lines)
+    for needle in ("bad name.yaml: 'bad name' is not a valid scene name", "wrongtype.yaml: instances.0.E",
+                   "syntax.yaml: not valid YAML", "unknownkey.yaml: <root>: Additional properties",
+                   "many.yaml: config.sim.n_grid: 4 is less than the minimum of 8", "many.yaml: source:",
+                   "many.yaml: scene.instances[0].material: unknown material 'unobtainium'",
+                   "many.yaml: camera.cameras_json:"):
+        assert needle in text, text
+    assert not any("good.yaml" in ln for ln in lines), text
+    assert "problem(s) in 5 file(s)" in p.stderr
+    p = subprocess.run([sys.executable, "-m", "physgs_steps.cli", "check"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and "no problems" in p.stdout, p.stdout + p.stderr
