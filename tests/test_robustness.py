@@ -177,3 +177,84 @@ def test_physgs_check_lists_every_problem(tmp_path, scenes):
     assert "problem(s) in 5 file(s)" in p.stderr
     p = subprocess.run([sys.executable, "-m", "physgs_steps.cli", "check"], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0 and "no problems" in p.stdout, p.stdout + p.stderr
+
+
+# ---------------------------------------------------------------------------- artifacts
+@pytest.mark.parametrize("umask,mode", [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
+def test_artifacts_honour_the_umask(tmp_path, umask, mode):
+    from physgs_steps import runtime
+
+    old = __import__("os").umask(umask)
+    try:
+        runtime.write_json(tmp_path / "a.json", {"x": 1})
+        with runtime.atomic_path(tmp_path / "b.h5") as tmp:
+            import h5py
+
+            with h5py.File(tmp, "w") as f:
+                f["x"] = [1, 2]
+    finally:
+        __import__("os").umask(old)
+    for name in ("a.json", "b.h5"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == mode, name
+
+
+def test_stale_part_files_of_a_killed_stage_are_cleaned(tmp_path):
+    """A stage killed while writing leaves its temporary file; the next run of the stage removes it
+    (and leaves the part files of other outputs, and of a live writer, alone)."""
+    import os
+    import signal
+    import time
+
+    from physgs_steps import runtime
+
+    out = tmp_path / "final.h5"
+    code = ("import sys, time; from physgs_steps.runtime import atomic_path\n"
+            f"with atomic_path({str(out)!r}) as t:\n    open(t, 'wb').write(b'x' * 100); print(t, flush=True); time.sleep(60)\n")
+    writer = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    part = Path(writer.stdout.readline().strip())
+    assert part.exists() and runtime.part_pattern(out).match(part.name), part
+    os.kill(writer.pid, signal.SIGKILL)
+    writer.wait()
+    assert part.exists()  # the kill left it
+    old_style = tmp_path / ".final.h5.k2j3h4l5.part.h5"   # the name format before the host-pid tag
+    other = tmp_path / ".final_other.h5.ab12cd34.part.h5"
+    live = tmp_path / f".final.h5.{runtime._host_tag()}-{os.getppid()}.zz99zz99.part.h5"
+    for p in (old_style, other, live):
+        p.write_bytes(b"x")
+
+    def stage(inputs, outputs, cfg, log):
+        with runtime.atomic_path(outputs["frames"]) as t:
+            Path(t).write_bytes(b"done")
+        return {}
+
+    t0 = time.time()
+    runtime.run_stage("final_sim", stage, {}, {"frames": str(out)}, {}, str(tmp_path / "log.txt"))
+    assert time.time() - t0 < 30
+    assert out.read_bytes() == b"done"
+    assert not part.exists() and not old_style.exists()
+    assert other.exists() and live.exists()
+    assert "earlier run of this stage" in (tmp_path / "log.txt").read_text()
+
+
+def _strict_load(text: str):
+    import json
+
+    def no_constant(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    return json.loads(text, parse_constant=no_constant)
+
+
+def test_json_outputs_are_strict(tmp_path):
+    import numpy as np
+
+    from physgs_steps import runtime
+
+    doc = {"E": 5e4, "g_tilde": float("inf"), "frames": [{"delta": float("nan")}, {"delta": 0.1}],
+           "arr": np.array([1.0, -np.inf], np.float32), "n": np.int64(3)}
+    runtime.write_json(tmp_path / "p.json", doc)
+    back = _strict_load((tmp_path / "p.json").read_text())
+    assert back["g_tilde"] is None and back["frames"][0]["delta"] is None and back["arr"] == [1.0, None]
+    assert back["nonfinite"]["values"] == {"/g_tilde": "inf", "/frames/0/delta": "nan", "/arr/1": "-inf"}
+    assert back["E"] == 5e4 and back["n"] == 3 and back["frames"][1]["delta"] == 0.1
+    assert _strict_load(runtime.json_text({"speed_max": float("inf")}))["speed_max"] is None
