@@ -258,3 +258,56 @@ def test_json_outputs_are_strict(tmp_path):
     assert back["nonfinite"]["values"] == {"/g_tilde": "inf", "/frames/0/delta": "nan", "/arr/1": "-inf"}
     assert back["E"] == 5e4 and back["n"] == 3 and back["frames"][1]["delta"] == 0.1
     assert _strict_load(runtime.json_text({"speed_max": float("inf")}))["speed_max"] is None
+
+
+# ---------------------------------------------------------------------------- openai deadline
+def test_openai_timeout_is_a_deadline_against_a_trickling_server():
+    """A server that sends a valid answer one byte every 0.2 s (about a minute in all) is cut off
+    at materials.openai.timeout_s, not held for the whole answer (urllib's timeout is per read)."""
+    import json
+    import logging
+    import threading
+    import time
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    from physgs_steps.params.openai_backend import OpenAIBackend
+    from physgs_steps.params.prompt import BackendError
+
+    answer = json.dumps({"choices": [{"message": {"role": "assistant", "content": '{"material": "jelly"}'}}]})
+    answer = answer + " " * max(0, 300 - len(answer))  # 300 bytes at 5 bytes/s: 60 s
+    hits = []
+
+    class Trickle(BaseHTTPRequestHandler):
+        def do_POST(self):  # noqa: N802 - http.server API
+            self.rfile.read(int(self.headers["Content-Length"]))
+            hits.append(time.monotonic())
+            self.send_response(200)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(answer)))
+            self.end_headers()
+            try:
+                for ch in answer.encode():
+                    self.wfile.write(bytes([ch]))
+                    self.wfile.flush()
+                    time.sleep(0.2)
+            except OSError:  # the client hung up
+                pass
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Trickle)
+    httpd.daemon_threads = True
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        be = OpenAIBackend({"base_url": f"http://127.0.0.1:{httpd.server_address[1]}/v1", "model": "m",
+                            "timeout_s": 1.5, "retries": 1, "backoff_s": 0.1}, logging.getLogger("test"))
+        t0 = time.monotonic()
+        with pytest.raises(BackendError, match=r"timeout_s = 1\.5 s.*gave up after 2 attempts"):
+            be.send([{"role": "user", "content": "hi"}])
+        took = time.monotonic() - t0
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+    assert len(hits) == 2
+    assert took < 6.0, f"two attempts of 1.5 s took {took:.1f} s"
