@@ -311,3 +311,40 @@ def test_openai_timeout_is_a_deadline_against_a_trickling_server():
         httpd.server_close()
     assert len(hits) == 2
     assert took < 6.0, f"two attempts of 1.5 s took {took:.1f} s"
+
+
+# ---------------------------------------------------------------------------- cluster fragments
+def _two_blobs(n_big=1950, n_small=203, gap=0.06, seed=0):
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    big = rng.uniform([0.3, 0.3, 0.3], [0.6, 0.6, 0.5], (n_big, 3))
+    small = rng.uniform([0.3, 0.6 + gap, 0.3], [0.4, 0.65 + gap, 0.35], (n_small, 3))
+    return np.concatenate([big, small])
+
+
+def test_a_fragment_joins_its_nearest_listed_instance_and_pins_name_the_scene_file(tmp_path):
+    import logging
+
+    from physgs_steps.cluster import cluster_config, compute_labels
+    from physgs_steps.params.stage import pinned_params
+
+    pts = _two_blobs()
+    scene = {"instances": [{"name": "udon", "material": "plasticine"}], "_path": "config/scenes/udon.yaml"}
+    log = logging.getLogger("test")
+    labels, rec = compute_labels(pts, scene, cluster_config({}), None, log)
+    assert rec["n_instances"] == 1 and (labels == 0).all()
+    assert rec["fragments"][0]["count"] == 203 and rec["fragments"][0]["joined_name"] == "udon"
+    assert any("joined instance 'udon'" in w for w in rec["warnings"])
+    assert pinned_params(scene, rec)["instances"][0]["material"] == "plasticine"
+    # a fragment larger than cluster.fragment_fraction of its neighbour stays; the pins then say what to do
+    labels, rec = compute_labels(pts, scene, cluster_config({"cluster": {"fragment_fraction": 0.05}}), None, log)
+    assert rec["n_instances"] == 2 and rec["instances"][1]["unmatched"]["nearest_label"] == 0
+    with pytest.raises(ConfigError) as e:
+        pinned_params(scene, rec)
+    msg = str(e.value)
+    assert "config/scenes/udon.yaml" in msg and "cluster label 1 (203 gaussians" in msg
+    assert "cluster.merge: [[0, 1]]" in msg and "cluster.fragment_fraction above 0.104" in msg
+    # without listed instances every cluster is an instance
+    labels, rec = compute_labels(pts, {"instances": []}, cluster_config({}), None, log)
+    assert rec["n_instances"] == 2 and not rec["fragments"]
