@@ -348,3 +348,88 @@ def test_a_fragment_joins_its_nearest_listed_instance_and_pins_name_the_scene_fi
     # without listed instances every cluster is an instance
     labels, rec = compute_labels(pts, {"instances": []}, cluster_config({}), None, log)
     assert rec["n_instances"] == 2 and not rec["fragments"]
+
+
+# ---------------------------------------------------------------------------- units and appearance
+def _blob(unit: float, offset: float = 0.0, n: int = 500):
+    """A sphere of gaussians 0.2 units across (x ``unit``) centred at ``offset`` (source frame)."""
+    import numpy as np
+
+    from physgs_steps.gaussians import GaussianScene
+
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(n, 3))
+    pts = 0.1 * pts / np.linalg.norm(pts, axis=1, keepdims=True) * rng.uniform(0.8, 1.0, (n, 1))
+    sh = np.zeros((n, 1, 3))
+    sh[:, 0] = [1.5, -1.5, -1.5]
+    return GaussianScene(means=pts * unit + offset, log_scales=np.log(np.full((n, 3), 0.02 * unit)),
+                         quats=np.tile([1.0, 0, 0, 0], (n, 1)), opacity_logits=np.full(n, 3.0), sh=sh)
+
+
+def _prepare(tmp_path, scene, name="src.ply"):
+    import logging
+
+    from physgs_steps import prepare
+    from physgs_steps.scene_io import save_gaussians
+
+    save_gaussians(scene, tmp_path / name)
+    out = {"scene": str(tmp_path / "scene.ply"), "transform": str(tmp_path / "transform.json")}
+    cfg = {"scene": {"source": str(tmp_path / name), "_path": "s.yaml"}, "prepare": {}}
+    return prepare.run({"source": str(tmp_path / name)}, out, cfg, logging.getLogger("test")), out
+
+
+@pytest.mark.parametrize("unit,offset", [(1e-4, 0.0), (1.0, 0.0), (1e4, 0.0), (1.0, 1e4)])
+def test_tiny_and_huge_unit_captures_render(tmp_path, unit, offset):
+    """render.near/far follow the scene's size: a capture 2e-5 or 2e3 units across renders like one
+    in metres (they were absolute source units: 0.01 clipped a 1e-4 capture, 1000 a 1e4 one)."""
+    import json
+    import logging
+
+    import h5py
+    import numpy as np
+
+    from physgs_steps.config import section_defaults
+    from physgs_steps.render.stage import run
+    from physgs_steps.scene_io import load_gaussians
+
+    _, out = _prepare(tmp_path, _blob(unit, offset))
+    sim = load_gaussians(out["scene"])
+    with h5py.File(tmp_path / "final.h5", "w") as f:
+        f["x"] = np.stack([sim.means, sim.means - [0, 0, 0.01]]).astype(np.float32)
+        f["F"] = np.tile(np.eye(3, dtype=np.float32), (2, sim.n, 1, 1))
+        f["gaussian_index"] = np.arange(sim.n, dtype=np.int64)
+        f["time"] = np.arange(2) / 30.0
+    r = section_defaults("render")
+    r.update({"backend": "cpu", "width": 48, "height": 48, "contact_sheet": {"frames": 2, "columns": 2, "tile_width": 32}})
+    outputs = {k: str(tmp_path / "out" / v) for k, v in
+               (("video", "video.mp4"), ("contact_sheet", "sheet.png"), ("report", "render.json"))}
+    run({"frames": str(tmp_path / "final.h5"), "scene": out["scene"], "transform": out["transform"]}, outputs,
+        {"render": r, "scene": {"camera": {"elevation_deg": 10.0}}, "device": "cpu"}, logging.getLogger("test"))
+    rep = json.loads((tmp_path / "out" / "render.json").read_text())
+    assert rep["coverage"]["min"] > 0.05, rep["coverage"]
+    size = rep["clip"]["scene_size"]
+    assert size == pytest.approx(0.2 * unit, rel=0.1)
+    assert rep["clip"]["near"] == pytest.approx(1e-3 * size) and rep["clip"]["far"] > 1e3 * size
+
+
+def test_prepare_checks_opacity_scale_and_float32_resolution(tmp_path):
+    import numpy as np
+
+    from physgs_steps.errors import InputError
+
+    s = _blob(1.0)
+    s.opacity_logits[:] = -20.0  # opacity 2e-9
+    with pytest.raises(InputError, match="opacity below 1/255.*logits"):
+        _prepare(tmp_path, s)
+    s = _blob(1.0)
+    s.log_scales[:] = np.log(1e30)
+    with pytest.raises(InputError, match="larger than the whole scene.*natural log"):
+        _prepare(tmp_path, s)
+    s = _blob(1.0)
+    s.log_scales[:7] = np.log(1e30)  # a few absurd gaussians are dropped, the rest goes on
+    summary, _ = _prepare(tmp_path, s)
+    assert summary["dropped"]["oversized"] == 7 and summary["n_kept"] == s.n - 7
+    with pytest.raises(InputError, match="no spatial extent.*resolve only 64 units: re-export the capture centred"):
+        _prepare(tmp_path, _blob(1.0, offset=1e9))  # a capture 1e9 units away: float32 collapses it to a point
+    with pytest.raises(InputError, match="resolve only 0.0625 units.*quantised.*Re-export the capture centred"):
+        _prepare(tmp_path, _blob(1.0, offset=1e6))
