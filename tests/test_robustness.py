@@ -433,3 +433,132 @@ def test_prepare_checks_opacity_scale_and_float32_resolution(tmp_path):
         _prepare(tmp_path, _blob(1.0, offset=1e9))  # a capture 1e9 units away: float32 collapses it to a point
     with pytest.raises(InputError, match="resolve only 0.0625 units.*quantised.*Re-export the capture centred"):
         _prepare(tmp_path, _blob(1.0, offset=1e6))
+
+
+# ---------------------------------------------------------------------------- BGDO without load
+def test_key_frames_before_contact_leave_E_unchanged_with_a_warning(tmp_path):
+    """bgdo.forward_frames: 3: the block is still falling in every key frame (the forward.h5 of a
+    3-frame run: free fall, F = I); BGDO must not read its zero deformation as 'far too stiff'
+    (it took 5e4 -> 34 Pa), but keep E, say why and how many forward frames reach the contact."""
+    import json
+    import logging
+
+    import h5py
+    import numpy as np
+
+    from physgs_steps.bgdo import run as bgdo_run
+    from physgs_steps.config import section_defaults
+
+    rng = np.random.default_rng(0)
+    x0 = np.asarray([0.42, 0.42, 0.45]) + 0.16 * rng.random((1500, 3))  # bottom 0.35 m above the ground (0.1)
+    P = len(x0)
+    params = {"instances": [{"label": 0, "name": "block", "material": "jelly", "elasticity": "fixed_corotated",
+                             "plasticity": "identity", "E": 5.0e4, "nu": 0.3, "density": 1000.0,
+                             "plasticity_params": {}, "velocity": [0.0, 0.0, 0.0]}], "backend": "prior", "history": []}
+    with h5py.File(tmp_path / "forward.h5", "w") as f:
+        f["particles/label"] = np.zeros(P, np.int32)
+        f["particles/filled"] = np.zeros(P, bool)
+        f["particles/vol"] = np.full(P, 0.16 ** 3 / P, np.float32)
+        for k in (0, 1, 2):
+            t = k / 30.0
+            g = f.create_group(f"keyframes/{k}")
+            g["x"] = (x0 - [0, 0, 4.9 * t * t]).astype(np.float32)
+            g["v"] = np.tile([0.0, 0.0, -9.8 * t], (P, 1)).astype(np.float32)
+            g["C"] = np.zeros((P, 3, 3), np.float32)
+            g["F"] = np.tile(np.eye(3, dtype=np.float32), (P, 1, 1))
+            g.attrs.update(frame=k, time=t, dt=1e-3)
+        f.attrs["params"] = json.dumps(params)
+        f.attrs["sim_config"] = json.dumps({"sim": {"n_grid": 32, "domain_size": 1.0, "fps": 30.0},
+                                            "dynamics": {"gravity": [0.0, 0.0, -9.8]}, "dx": 1 / 32})
+        f.attrs["stats"] = json.dumps({"stable": True, "key_frames_requested": [0, 1, 2], "forward_frames": 3})
+    (tmp_path / "params.json").write_text(json.dumps(params))
+    bgdo = section_defaults("bgdo")
+    bgdo.update(forward_frames=3)
+    sim = section_defaults("sim")
+    log = logging.getLogger("test.bgdo.nosignal")
+    records = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    log.addHandler(handler)
+    bgdo_run({"keyframes": str(tmp_path / "forward.h5"), "params": str(tmp_path / "params.json")},
+             {"params": str(tmp_path / "out.json")}, {"bgdo": bgdo, "sim": sim, "scene": {}, "device": "cpu"}, log)
+    out = json.loads((tmp_path / "out.json").read_text())
+    assert out["instances"][0]["E"] == 5.0e4
+    rec = out["bgdo"]["instances"][0]
+    assert rec["rule"] == "no_signal" and "carries a load" in rec["note"]
+    assert all(fr.get("unloaded") for fr in rec["frames"] if fr["frame"] > 0)
+    info = out["bgdo"]["no_signal"]["0"]
+    c = info["contact"]
+    assert c["support"] == "the floor" and c["height_m"] == pytest.approx(0.35, abs=0.01)
+    assert c["time_s"] == pytest.approx((2 * c["height_m"] / 9.8) ** 0.5, rel=1e-6)
+    assert info["forward_frames_needed"] == int(np.ceil((c["time_s"] + 0.05) * 30 / 0.5)) + 1
+    warn = [r.getMessage() for r in records if r.levelno == logging.WARNING]
+    assert any("no key frame after frame 0" in w and f"at least {info['forward_frames_needed']} (now 3)" in w
+               for w in warn), warn
+
+
+def test_unloaded_key_frames_are_left_out_of_the_update():
+    """A key frame before contact is dropped from the update; a loaded one still counts."""
+    import numpy as np
+
+    from physgs_steps.bgdo.update import Scales, bgdo_update, mark_unloaded
+
+    sc = Scales(np.array([5e3]), np.array([5e4]), np.array([0.04]), ["t"], [None], np.array([0.04]))
+    row = lambda fr, tau, delta: {"frame": fr, "g_tilde": 0.1, "stress_grad_hat": 0.1, "delta": delta,  # noqa: E731
+                                  "tau_norm": tau, "n_exploded": 0, "weight": 1}
+    static = np.array([5e3])
+    falling = [[row(0, 0.0, 0.0)], [row(1, 3e-3, 1e-10)], [row(2, 3e-3, 1e-8)]]
+    assert mark_unloaded(falling, static, sc, 0.01) == [0]
+    _, rec = bgdo_update(np.log([5e4]), falling, sc, {"eta_rule": "paper", "eta_coefficient": 0.1, "variant": "algorithm1",
+                                                        "max_step": 9.2})
+    assert rec[0]["E_after"] == pytest.approx(5e4) and rec[0]["rule"] == "no_signal"
+    mixed = [[row(0, 0.0, 0.0)], [row(1, 3e-3, 1e-10)], [row(2, 5e3, 0.04)]]
+    assert mark_unloaded(mixed, static, sc, 0.01) == []
+    _, rec = bgdo_update(np.log([5e4]), mixed, sc, {"eta_rule": "paper", "eta_coefficient": 0.1, "variant": "algorithm1",
+                                                      "max_step": 9.2})
+    # only the loaded frame enters the deformation term: delta = target -> log ratio 0, no collapse to ~30 Pa
+    assert rec[0]["rule"] == "signals" and 1e4 < rec[0]["E_after"] < 1e5
+
+
+# ---------------------------------------------------------------------------- resources
+def _dry_resources(run_dir, *args) -> dict:
+    """rule -> resources of its first job in a dry run (forced)."""
+    import re
+
+    p = smk(run_dir, "-n", "--forceall", "results/bear/video.mp4", *args)
+    assert p.returncode == 0, (p.stdout + p.stderr)[-3000:]
+    out, rule = {}, None
+    for line in p.stdout.splitlines():
+        m = re.match(r"^rule (\w+):$", line)
+        if m:
+            rule = m.group(1)
+        elif rule and line.strip().startswith("resources:"):
+            out.setdefault(rule, dict(kv.strip().split("=", 1) for kv in line.split(":", 1)[1].split(", ")))
+            rule = None
+    return out
+
+
+def test_resource_requests_follow_backend_and_scene_size(run_dir):
+    from physgs_steps import config as C
+    from physgs_steps import resources as R
+
+    qwen = _dry_resources(run_dir, "--config", "materials={backend: qwen3vl}")
+    assert int(qwen["vlm_params"]["mem_mb"]) == 24100 and int(qwen["vlm_params"]["runtime"]) == 60
+    res = C.load_config()["resources"]
+    assert R.request(res, "vlm_params", 20_000, "prior")["mem_mb"] == 1100  # 1000 + 500 MB per million
+    small, big = R.request(res, "bgdo_update", 20_000), R.request(res, "bgdo_update", 1_000_000)
+    assert big["mem_mb"] - small["mem_mb"] == pytest.approx(0.98 * 6000, abs=100)
+    assert R.request(res, "vlm_params", 0, "prior")["mem_mb"] == 1000
+    # a config that sets one entry keeps the others' defaults
+    over = {**res, "backends": {"qwen3vl": {"runtime": 90}}, "stages": {"fill": {"mem_mb": 2000}}}
+    assert R.request(over, "vlm_params", 0, "qwen3vl") == {"mem_mb": 24000, "runtime": 90}
+    assert R.request(over, "final_sim", 0)["runtime"] == 60 and R.request(over, "fill", 0)["mem_mb"] == 2000
+
+
+def test_scene_size_from_the_file_header(splats_dir):
+    from physgs_steps import resources as R
+
+    assert R.scene_gaussians({"source": str(splats_dir / "ranrandy_udon_point_cloud4.ply")}) == 2153
+    assert R.scene_gaussians({"source": str(splats_dir / "swiftgraphics_lastchance.splat")}) == 14831
+    assert R.scene_gaussians({"source": "builtin:bear", "builtin": {"n_gaussians": 5000}}) == 5000
+    assert R.scene_gaussians({"source": "no/such/file.ply"}) is None

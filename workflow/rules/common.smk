@@ -98,13 +98,24 @@ def gpu_count(stage):
     return 1 if DEVICE == "cuda" and stage in config["resources"]["gpu_stages"] else 0
 
 
-def res(stage, key):
-    r = config["resources"]["stages"].get(stage, {})
-    return r.get(key, config["resources"]["default"][key])
+def job_request(stage, w):
+    """mem_mb and runtime of a job: its rule, the configured material backend and the size of
+    its scene (physgs_steps.resources; config section `resources`)."""
+    from physgs_steps import resources
+
+    target = getattr(w, "target", None) or w.scene
+    plan = target_plan(target)
+    n = resources.scene_gaussians(plan.cfgs["prepare"]["scene"])
+    backend = plan.cfgs["params"]["materials"]["backend"] if stage == "vlm_params" else None
+    return resources.request(config["resources"], stage, n, backend)
+
+
+def mem_mb(stage):
+    return lambda wildcards: job_request(stage, wildcards)["mem_mb"]
 
 
 def runtime_min(stage):
-    return lambda wildcards, attempt: int(res(stage, "runtime") * attempt)
+    return lambda wildcards, attempt: job_request(stage, wildcards)["runtime"] * attempt
 
 
 # ---- input functions of the rules

@@ -11,7 +11,7 @@ rule prepare:
     benchmark:
         "results/{scene}/benchmarks/prepare.tsv"
     resources:
-        mem_mb=res("prepare", "mem_mb"),
+        mem_mb=mem_mb("prepare"),
         runtime=runtime_min("prepare"),
     script:
         "../scripts/prepare.py"

@@ -12,7 +12,7 @@ rule render:
     benchmark:
         "results/{target}/benchmarks/render.tsv"
     resources:
-        mem_mb=res("render", "mem_mb"),
+        mem_mb=mem_mb("render"),
         runtime=runtime_min("render"),
         gpu=gpu_count("render"),
     script:
@@ -33,7 +33,7 @@ rule metrics:
     benchmark:
         "results/{target}/benchmarks/metrics.tsv"
     resources:
-        mem_mb=res("metrics", "mem_mb"),
+        mem_mb=mem_mb("metrics"),
         runtime=runtime_min("metrics"),
     script:
         "../scripts/metrics.py"
