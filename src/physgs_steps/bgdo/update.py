@@ -403,10 +403,11 @@ def mark_unloaded(frames: list[list[dict]], static: np.ndarray, scales: Scales, 
     """Mark the key frames after frame 0 in which an instance is not loaded (``unloaded``).
 
     An instance is loaded in a key frame when its mean ||tau|| is at least ``min_load`` x its
-    static stress rho |g| H (``static`` [K], Pa; without gravity: its mean deformation at least
-    ``min_load`` x its delta_target), or when it has exploded particles. An unloaded frame (the
-    object still falling or flying) carries no information about E and is left out of that
-    instance's update. Returns the instances that have key frames after frame 0 but no loaded
+    static stress rho |g| H (``static`` [K], Pa), or its mean deformation at least ``min_load``
+    x its delta_target (a collapsed, far too soft object is barely stressed but very deformed),
+    or when it has exploded particles. An unloaded frame (the object still falling or flying:
+    stress and deformation both about 1e-6 of those scales) carries no information about E and
+    is left out of that instance's update. Returns the instances that have key frames after frame 0 but no loaded
     one: :func:`bgdo_update` leaves their E unchanged (rule ``no_signal``)."""
     silent = []
     K = len(frames[0]) if frames else 0
@@ -416,11 +417,9 @@ def mark_unloaded(frames: list[list[dict]], static: np.ndarray, scales: Scales, 
             if r.get("n_exploded") or r.get("tau_norm") is None:
                 continue  # exploded (a signal: too stiff) or a state the failure rules supply
             ref = float(static[k]) if static is not None else 0.0
-            if ref > 0:
-                loaded = r["tau_norm"] >= min_load * ref
-            else:
-                loaded = r["delta"] is not None and r["delta"] >= min_load * scales.delta_target(k)
-            if not loaded:
+            stressed = ref > 0 and r["tau_norm"] >= min_load * ref
+            deformed = r["delta"] is not None and r["delta"] >= min_load * scales.delta_target(k)
+            if not (stressed or deformed):
                 r["unloaded"] = True
         if later and all(r.get("unloaded") for r in later):
             silent.append(k)
