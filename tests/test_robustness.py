@@ -562,3 +562,60 @@ def test_scene_size_from_the_file_header(splats_dir):
     assert R.scene_gaussians({"source": str(splats_dir / "swiftgraphics_lastchance.splat")}) == 14831
     assert R.scene_gaussians({"source": "builtin:bear", "builtin": {"n_gaussians": 5000}}) == 5000
     assert R.scene_gaussians({"source": "no/such/file.ply"}) is None
+
+
+# ---------------------------------------------------------------------------- extreme geometry
+def test_a_tenth_of_a_millimetre_object_ends_stable_or_says_what_to_change(tmp_path):
+    """sim.domain_size 2e-4 m: the jelly needs ~40k substeps per frame. The forward run explodes
+    with a message naming the substeps, dx and the fix; BGDO lowers E to what the solver can
+    integrate and warns that it left the material's range. With sim.max_substeps 32 that E
+    (0.03 Pa) cannot carry the speck's weight: the final run stops saying to raise
+    sim.max_substeps (with 256 it ends stable at 1.8 Pa)."""
+    import json
+    import logging
+
+    import h5py
+    import numpy as np
+
+    from physgs_steps import simulate
+    from physgs_steps.bgdo import run as bgdo_run
+    from physgs_steps.config import section_defaults
+    from physgs_steps.runtime import write_json
+
+    rng = np.random.default_rng(0)
+    x = np.asarray([0.42, 0.42, 0.3]) + 0.16 * rng.random((800, 3))
+    with h5py.File(tmp_path / "particles.h5", "w") as f:
+        f["x"], f["label"] = x.astype(np.float32), np.zeros(len(x), np.int32)
+        f["filled"], f["vol"] = np.zeros(len(x), bool), np.full(len(x), 0.16 ** 3 / len(x), np.float32)
+        f.attrs["n_gaussians"], f.attrs["n_instances"] = len(x), 1
+    params = {"instances": [{"label": 0, "name": "speck", "material": "jelly", "elasticity": "fixed_corotated",
+                             "plasticity": "identity", "E": 5.0e4, "nu": 0.3, "density": 1000.0,
+                             "plasticity_params": {}, "velocity": [0.0, 0.0, 0.0]}], "backend": "prior", "history": []}
+    write_json(tmp_path / "params.json", params)
+    sim = section_defaults("sim")
+    sim.update(n_grid=16, n_frames=4, backend="cpu", domain_size=2e-4, max_substeps=32)
+    bgdo = section_defaults("bgdo")
+    cfg = {"sim": sim, "scene": {"dynamics": {}}, "bgdo": {"key_frames": bgdo["key_frames"], "forward_frames": 3},
+           "device": "cpu"}
+    log = logging.getLogger("test.tiny")
+    records = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    log.addHandler(handler)
+    ins = {"particles": str(tmp_path / "particles.h5"), "params": str(tmp_path / "params.json")}
+    res = simulate.run_forward(ins, {"keyframes": str(tmp_path / "forward.h5")}, cfg, log)
+    assert not res["stable"]
+    msg = " ".join(r.getMessage() for r in records if r.levelno == logging.WARNING)
+    assert "dx = sim.domain_size / n_grid = 1.25e-05 m" in msg and "raise sim.max_substeps" in msg, msg
+    bgdo_run({"keyframes": str(tmp_path / "forward.h5"), "params": ins["params"]}, {"params": str(tmp_path / "p1.json")},
+             {"bgdo": bgdo, "sim": sim, "scene": {}, "device": "cpu"}, log)
+    p1 = json.loads((tmp_path / "p1.json").read_text())
+    assert p1["instances"][0]["E"] < 1e4 and p1["bgdo"]["instances"][0]["in_band_after"] is False
+    msg = " ".join(r.getMessage() for r in records if r.levelno == logging.WARNING)
+    assert "leaves jelly's range" in msg and "raise sim.max_substeps or lower sim.n_grid" in msg, msg
+    from physgs_steps.errors import SimulationError
+
+    with pytest.raises(SimulationError, match=r"cannot carry the load.*But sim\.max_substeps = 32 integrates 'speck' "
+                                              r"only up to E = .*raise sim\.max_substeps"):
+        simulate.run_final({**ins, "params": str(tmp_path / "p1.json")}, {"frames": str(tmp_path / "final.h5")},
+                           cfg, log)

@@ -232,6 +232,16 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
                  "n/a" if rec["G"] is None else f"{rec['G']:.4f}", rec["eta"], rec["E_hat"], rec["delta_target"],
                  rec["rule"], " [clipped to max_step]" if rec["clipped"] else "",
                  " [held at the solver ceiling]" if rec["capped_by_ceiling"] else "")
+    for rec in records:
+        if rec.get("in_band_after") is False and rec.get("in_band_before") is not False:
+            lo, hi = rec["band"]
+            why = (f"the forward run exploded and the solver integrates at most E_cap = {rec['ceiling']:.3g} Pa at "
+                   f"this resolution (sim.max_substeps = {rec_sim.get('max_substeps')}, grid spacing dx = "
+                   f"{grid.domain_size / grid.n_grid:.3g} m): raise sim.max_substeps or lower sim.n_grid to keep "
+                   "the material's stiffness" if str(rec["rule"]).startswith("exploded") or rec["capped_by_ceiling"]
+                   else "check the scene's loads and the material choice")
+            log.warning("instance %d (%s): E %.4g -> %.4g Pa leaves %s's range [%.3g, %.3g] Pa: %s", rec["label"],
+                        rec["name"], rec["E_before"], rec["E_after"], rec["material"], lo, hi, why)
     cuda_peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else None
     seconds = {"read": round(t1 - t0, 4), "signals": round(t2 - t1, 4), "total": round(time.perf_counter() - t0, 4)}
     record = {
