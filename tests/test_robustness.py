@@ -50,6 +50,9 @@ def test_scene_file_reads_yaml12_numbers(tmp_path):
     p.write_text("source: builtin:bear\ninstances:\n  - {name: b, E: 'fifty kilopascal'}\n")
     with pytest.raises(ConfigError, match=r"instances\.0\.E"):
         C.validate(C.read_yaml(p), C.load_schema("scene.schema.yaml"), str(p))
+    p.write_text("source: builtin:bear\ninstances:\n  - {name: b, E: .inf}\n")  # passes every schema bound
+    with pytest.raises(ConfigError, match=r"instances\.0\.E.*finite"):
+        C.validate(C.read_yaml(p), C.load_schema("scene.schema.yaml"), str(p))
 
 
 # ---------------------------------------------------------------------------- plans

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -183,7 +184,21 @@ def problems(instance: Any, schema: dict, source: str, prefix: str = "") -> list
         elif e.validator == "type" and isinstance(e.instance, str) and "object" in _types(e.schema):
             msg += " (a mapping is expected; on the command line: --config '<section>={key: value}')"
         out.append(ConfigError(key, msg, source))
+    for path in _nonfinite(instance):  # YAML's .inf / .nan pass every schema bound
+        key = ".".join(p for p in (prefix, path) if p) or "<root>"
+        out.append(ConfigError(key, "must be a finite number (got inf or nan)", source))
     return out
+
+
+def _nonfinite(node: Any, path: str = "") -> list[str]:
+    """Key paths of the non-finite floats in ``node``."""
+    if isinstance(node, float):
+        return [] if math.isfinite(node) else [path]
+    if isinstance(node, dict):
+        return [p for k, v in node.items() for p in _nonfinite(v, f"{path}.{k}" if path else str(k))]
+    if isinstance(node, list):
+        return [p for i, v in enumerate(node) for p in _nonfinite(v, f"{path}.{i}" if path else str(i))]
+    return []
 
 
 def validate(instance: Any, schema: dict, source: str, prefix: str = "") -> Any:
