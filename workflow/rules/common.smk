@@ -37,8 +37,13 @@ def config_layers():
 try:
     C.validate_config(config)
 except ConfigError as e:
-    fail(ConfigError(e.key, e.problem, C.origin_of(e.key.split(".")[0] if e.key == "<root>" else e.key,
-                                                   config_layers()) or e.source))
+    import re
+
+    key = e.key if e.key != "<root>" else ""
+    unknown = re.search(r"'([^']+)' (?:was|were) unexpected", e.problem)  # an unknown key: where was it set?
+    if unknown:
+        key = f"{key}.{unknown.group(1)}" if key else unknown.group(1)
+    fail(ConfigError(e.key, e.problem, (C.origin_of(key, config_layers()) if key else None) or e.source))
 
 SCENES, NO_SCENES = C.list_scenes(config)  # NO_SCENES: why there are none (a missing folder...)
 REG = P.Registry(config, SCENES)
@@ -103,8 +108,10 @@ def job_request(stage, w):
     its scene (physgs_steps.resources; config section `resources`)."""
     from physgs_steps import resources
 
-    target = getattr(w, "target", None) or w.scene
-    plan = target_plan(target)
+    if stage == "vlm_params":  # the plan of this params id (an ablation may change the backend)
+        plan = plan_for(w, "params")
+    else:
+        plan = target_plan(getattr(w, "target", None) or w.scene)
     n = resources.scene_gaussians(plan.cfgs["prepare"]["scene"])
     backend = plan.cfgs["params"]["materials"]["backend"] if stage == "vlm_params" else None
     return resources.request(config["resources"], stage, n, backend)
