@@ -25,3 +25,12 @@ rule all:
     input:
         video=plan_path(MAIN_SCENE, "video"),
         metrics=plan_path(MAIN_SCENE, "metrics"),
+
+
+# The warm stage worker (config `worker`, src/physgs_steps/worker.py) lives as long as the run.
+onsuccess:
+    stop_worker()
+
+
+onerror:
+    stop_worker()
