@@ -69,7 +69,7 @@ ENTRIES = {
     "final_sim": "physgs_steps.simulate:run_final",
     "bgdo_update": "physgs_steps.bgdo:run",
     "render": "physgs_steps.render.stage:run",
-    "metrics": "physgs_steps.metrics:run",
+    "metrics": "physgs_steps.metrics.stage:run",
     "stage_report": "physgs_steps.stage_report:run",
 }
 
