@@ -397,15 +397,29 @@ def run_job(stage: str, inputs: dict, outputs: dict, cfg: dict, log: str | None,
     return 1
 
 
-def shutdown(path: str | os.PathLike | None = None) -> bool:
-    """Ask the worker of this code and environment (or at ``path``) to exit; True if one did."""
+def shutdown(path: str | os.PathLike | None = None, wait_s: float = 15.0) -> bool:
+    """Ask the worker of this code and environment (or at ``path``) to exit and wait up to
+    ``wait_s`` for its process to be gone (its GPU memory freed); True if one was running."""
     conn = _connect(Path(path) if path else socket_path())
     if conn is None:
         return False
+    bye = None
     with conn:
-        with contextlib.suppress(OSError):
+        with contextlib.suppress(OSError, ValueError):
             _send(conn, {"op": "shutdown"})
-            next(_messages(conn), None)
+            bye = next(_messages(conn), None)
+    pid = (bye or {}).get("bye")
+    t_end = time.monotonic() + wait_s
+    while pid and time.monotonic() < t_end:
+        try:
+            if os.waitpid(int(pid), os.WNOHANG)[0]:  # our own child (this process started it): reap it
+                break
+        except ChildProcessError:  # started by an earlier job's client: gone once kill(0) fails
+            try:
+                os.kill(int(pid), 0)
+            except (ProcessLookupError, PermissionError):
+                break
+        time.sleep(0.02)
     return True
 
 
