@@ -5,6 +5,8 @@ P2G, float atomics, gravity and slip walls), on the same particles in the same p
     python benchmarks/bench_mpm.py                      # ti.cpu, and ti.cuda when available
     python benchmarks/bench_mpm.py --arch cuda --sizes 1000000
     python benchmarks/bench_mpm.py --arch cpu --sizes 30000 --seconds 5
+    python benchmarks/bench_mpm.py --arch cuda --sizes 300000 1000000 --warp-solver PhysGaussian/mpm_solver_warp
+    python benchmarks/bench_mpm.py --arch cuda --sizes 1000000 --profile     # Taichi kernel profiler per pass
 
 Particles fill a box in random order (as gaussians come from a .ply); the textbook kernel gets
 them in that order and, for reference, sorted by cell as physgs stores them.  The figure is
