@@ -30,7 +30,7 @@ import json
 from dataclasses import dataclass, field
 
 from . import config as C
-from .errors import ConfigError
+from .errors import ConfigError, PhysGSError
 
 RESULTS = "results"
 
@@ -254,15 +254,13 @@ def previous_step(step: str) -> str:
     return "it0" if i == 1 else f"it{i - 1}-{step.split('-', 1)[1]}"
 
 
-def plans_of(cfg: dict, key: str, scenes: list[str] | None = None) -> list[Plan]:
+def plans_of(cfg: dict, key: str) -> list[Plan]:
     """Every plan of one scene key: the scene with each ablation, or a benchmark key's variants."""
     if key.startswith(BENCHMARK + "/"):
         from .benchmark.spec import spec_for_key
 
         spec, name = spec_for_key(cfg, key)
         return spec.plans(name)
-    if scenes is not None and key not in scenes:
-        raise ConfigError("scene", f"unknown scene '{key}'; scenes in {cfg.get('scenes_dir')}: {', '.join(scenes)}")
     return [make_plan(cfg, key, abl) for abl in [None, *sorted(cfg.get("ablations") or {})]]
 
 
@@ -278,38 +276,85 @@ def plan_for_target(cfg: dict, target: str) -> Plan:
 
 
 class Registry:
-    """The plans the workflow knows, indexed by artifact id, so that a rule can find the config
-    belonging to an id in its output path. Plans are made when first asked for, one scene key
-    (all its variants) at a time: a dry run of one scene builds only that scene's plans."""
+    """The plans the workflow knows (every scene x every ablation, and the benchmark's runs x
+    their variants), indexed by artifact id, so that a rule can find the config belonging to an
+    id in its output path.
+
+    Plans are made on first use, one scene key (with all its ablations or variants) at a time,
+    so a dry run of one scene builds only that scene's plans, and a scene file with a problem
+    blocks only its own targets: the problem is recorded and raised when one of them is asked
+    for (``snakemake`` for other scenes, ``-n`` included, is unaffected).
+    """
 
     def __init__(self, cfg: dict, scenes: list[str]):
         self.cfg = cfg
         self.scenes = list(scenes)
         self.plans: dict[str, Plan] = {}
+        self.problems: dict[str, PhysGSError] = {}  # target (or benchmark key) -> why it has no plan
         self.by_id: dict[tuple[str, str, str], Plan] = {}
-        self._built: set[str] = set()
+        self._loaded: set[str] = set()
 
-    def _build(self, key: str) -> None:
-        if key in self._built:
+    def ablations(self) -> list[str]:
+        return sorted(self.cfg.get("ablations") or {})
+
+    def _add(self, key: str, plan: Plan) -> None:
+        self.plans[plan.target] = plan
+        for kind, ident in plan.ids.items():
+            self.by_id.setdefault((key, kind, ident), plan)
+
+    def _load(self, key: str) -> None:
+        if key in self._loaded:
             return
-        for plan in plans_of(self.cfg, key, self.scenes):
-            self.plans[plan.target] = plan
-            for kind, ident in plan.ids.items():
-                self.by_id.setdefault((key, kind, ident), plan)
-        self._built.add(key)
+        self._loaded.add(key)
+        if key.startswith(BENCHMARK + "/"):
+            try:
+                plans = plans_of(self.cfg, key)
+            except PhysGSError as e:
+                self.problems[key] = e
+                return
+            for plan in plans:
+                self._add(key, plan)
+            return
+        for abl in [None, *self.ablations()]:
+            target = key if abl is None else f"{key}/ablations/{abl}"
+            try:
+                plan = make_plan(self.cfg, key, abl)
+            except PhysGSError as e:
+                self.problems[target] = e
+                continue
+            self._add(key, plan)
+
+    def _check_scene(self, key: str) -> None:
+        if key.startswith(BENCHMARK + "/"):
+            return  # the benchmark spec names its unknown runs itself
+        if key not in self.scenes:
+            raise ConfigError("scene", f"unknown scene '{key}': no scene file {C.scene_path(self.cfg, key)}; "
+                                       f"known scenes: {', '.join(self.scenes) or '(none)'}")
 
     def plan(self, target: str) -> Plan:
-        key, _ = parse_target(target)
-        self._build(key)
+        key, variant = parse_target(target)
+        self._check_scene(key)
+        bench = key.startswith(BENCHMARK + "/")
+        if not bench and variant is not None and variant not in self.ablations():
+            raise ConfigError("ablations", f"unknown ablation '{variant}' in target '{target}'; ablations: "
+                                           f"{', '.join(self.ablations()) or '(none configured)'}")
+        self._load(key)
+        if target in self.problems:
+            raise self.problems[target]
+        if bench and key in self.problems:  # the benchmark run's spec itself is broken
+            raise self.problems[key]
         if target not in self.plans:
             known = sorted(t for t in self.plans if t == key or t.startswith(key + "/"))
             raise ConfigError("target", f"unknown target '{target}'; known for {key}: {', '.join(known)}")
         return self.plans[target]
 
     def for_id(self, scene: str, kind: str, ident: str) -> Plan:
-        self._build(scene)
+        self._check_scene(scene)
+        self._load(scene)
         try:
             return self.by_id[(scene, kind, ident)]
         except KeyError:
+            if scene in self.problems:  # the scene file itself is broken
+                raise self.problems[scene] from None
             raise ConfigError(kind, f"no current config of scene '{scene}' gives {kind} id '{ident}' "
                               "(the path is stale: the config changed since it was requested)") from None

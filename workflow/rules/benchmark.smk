@@ -33,7 +33,7 @@ rule bench_stress:
     benchmark:
         "results/{scene}/benchmarks/bench_stress-{stress_id}-{index}.tsv"
     resources:
-        mem_mb=res("bench_stress", "mem_mb"),
+        mem_mb=mem_mb("bench_stress"),
         runtime=runtime_min("bench_stress"),
         gpu=gpu_count("bench_stress"),
     script:
@@ -56,7 +56,7 @@ rule benchmark_stage_table:
     benchmark:
         "results/benchmark/{scale}/benchmarks/benchmark_stage_table.tsv"
     resources:
-        mem_mb=res("benchmark_report", "mem_mb"),
+        mem_mb=mem_mb("benchmark_report"),
         runtime=runtime_min("benchmark_report"),
     script:
         "../scripts/benchmark_stage_table.py"
@@ -79,7 +79,7 @@ rule benchmark_report:
     benchmark:
         "results/benchmark/{scale}/benchmarks/benchmark_report.tsv"
     resources:
-        mem_mb=res("benchmark_report", "mem_mb"),
+        mem_mb=mem_mb("benchmark_report"),
         runtime=runtime_min("benchmark_report"),
     script:
         "../scripts/benchmark_report.py"

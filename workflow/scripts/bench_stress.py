@@ -1,5 +1,4 @@
 """Snakemake adapter for bench_stress (logic in physgs_steps.benchmark.stress)."""
-from physgs_steps.benchmark.stress import run as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("bench_stress", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("bench_stress", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured
