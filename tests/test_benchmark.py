@@ -41,21 +41,28 @@ def cfg(**over):
 
 
 # ------------------------------------------------------------------------------------ readers
-def test_scores_tolerate_every_shape_of_metrics_json():
-    m = {"clip_score": {"value": 0.29, "per_frame": [0.3]},
-         "aesthetic_score": {"value": None, "reason": "metrics.aesthetic_model_path is not set"},
-         "videophy2": {"sa": {"value": 0.8, "raw": [4, 5], "backend": "official"},
-                       "pc": {"value": 0.5, "backend": "qwen3vl"}}}
+def test_scores_read_the_metrics_package_schema():
+    from physgs_steps.metrics import scores as MS
+
+    m = {"schema_version": 2,
+         "clip_score": MS.measured("clip_score", 0.29, "clip", True, per_frame=[0.3]),
+         "aesthetic_score": MS.unavailable("aesthetic_score", "metrics.aesthetic_model_path is not set"),
+         "semantic_adherence": MS.measured("semantic_adherence", 0.75, "videophy2_official", True, ratings=[4]),
+         "physical_commonsense": MS.measured("physical_commonsense", 0.5, "videophy2_inprocess", False,
+                                             label="in-process stand-in, not VideoPhy-2")}
     assert RD.score(m, "CS").value == pytest.approx(0.29)
     a = RD.score(m, "AS")
     assert a.value is None and "aesthetic_model_path" in a.reason
-    assert RD.score(m, "SA").value == 0.8 and RD.score(m, "SA").note is None
+    assert RD.score(m, "SA").value == 0.75 and RD.score(m, "SA").note is None
     pc = RD.score(m, "PC")
-    assert pc.value == 0.5 and "qwen3vl" in pc.note  # not the paper's rater: labelled
+    assert pc.value == 0.5 and pc.note == "in-process stand-in, not VideoPhy-2"  # not the paper's rater: labelled
+    assert set(RD.SCORE_KEYS.values()) == set(MS.COLUMNS) and all(MS.COLUMNS[v] == k for k, v in RD.SCORE_KEYS.items())
     old = {"clip_score": 0.3}  # a bare number, and no VideoPhy2 keys at all
     assert RD.score(old, "CS").value == 0.3
-    assert RD.score(old, "SA").value is None and "VideoPhy2" in RD.score(old, "SA").reason
-    assert RD.score({"videophy2_pc": {"value": None, "reason": "rater crashed: boom"}}, "PC").reason == "rater crashed: boom"
+    sa = RD.score(old, "SA")
+    assert sa.value is None and "semantic_adherence" in sa.reason and "VideoPhy2" in sa.reason
+    assert RD.score({"physical_commonsense": MS.unavailable("physical_commonsense", "rater crashed: boom")},
+                    "PC").reason == "rater crashed: boom"
     assert RD.score(None, "CS", "no metrics for this run").reason == "no metrics for this run"
     assert RD.score({"clip_score": "high"}, "CS").value is None
 

@@ -63,44 +63,39 @@ def _finite(v: Any) -> bool:
 
 
 # ------------------------------------------------------------------------------------ scores
-# Where each score of the paper's tables lies in metrics.json (first match wins). SA and PC
-# come from VideoPhy2 (peer work; these are the spellings it may use).
-SCORE_KEYS = {
-    "CS": ("clip_score",),
-    "AS": ("aesthetic_score",),
-    "SA": ("videophy2.sa", "videophy2_sa", "videophy2.semantic_adherence", "semantic_adherence", "sa"),
-    "PC": ("videophy2.pc", "videophy2_pc", "videophy2.physical_commonsense", "physical_commonsense", "pc"),
-}
+# metrics.json (schema_version 2, physgs_steps.metrics.scores): one key per paper column, each
+# {"column", "value" | null, "reason", "backend", "paper_metric", "scale", ...}.
+SCORE_KEYS = {"CS": "clip_score", "AS": "aesthetic_score", "SA": "semantic_adherence", "PC": "physical_commonsense"}
 SCORE_NAMES = {"CS": "CLIP score", "AS": "aesthetic score", "SA": "VideoPhy2 semantic adherence",
                "PC": "VideoPhy2 physical commonsense"}
-OFFICIAL_BACKENDS = {None, "official", "videophy2", "videophy_2_auto", "videophysics/videophy_2_auto"}
 
 
 def score(metrics: dict | None, name: str, why_missing: str | None = None) -> Cell:
     """One of CS, AS, SA, PC from a metrics.json document.
 
-    An entry may be a number or ``{"value": x | null, "reason": ..., "backend"/"rater": ...}``.
-    A value produced by a backend other than the paper's metric (e.g. an in-process
-    VideoPhy2-style rater) keeps its value and carries the backend in ``note``.
+    An entry is ``{"value": x | null, "reason": ..., "backend": ..., "paper_metric": ...}`` (a
+    bare number, as older metrics.json files wrote CS/AS, is read as a value). A value that is
+    not the paper's metric (``paper_metric: false``, e.g. the in-process VideoPhy2 stand-in)
+    keeps its value and carries the entry's ``label`` (or its backend) in ``note``, so a table
+    never shows it as the paper's number.
     """
     if metrics is None:
         return missing(why_missing or "no metrics.json")
-    entry, key = None, None
-    for k in SCORE_KEYS[name]:
-        entry = _get(metrics, k)
-        if entry is not None:
-            key = k
-            break
+    key = SCORE_KEYS[name]
+    entry = metrics.get(key) if isinstance(metrics, dict) else None
     if entry is None:
-        return missing(f"metrics.json has no {SCORE_NAMES[name]} (the metrics stage of this version does not compute it)")
+        version = metrics.get("schema_version") if isinstance(metrics, dict) else None
+        return missing(f"metrics.json (schema_version {version or 1}) has no '{key}' ({SCORE_NAMES[name]}): "
+                       "made by a metrics stage that does not compute it; re-run metrics")
     if _finite(entry):
         return Cell(float(entry))
     if not isinstance(entry, dict):
         return missing(f"metrics.json '{key}' is {entry!r}, not a number")
     value = entry.get("value")
-    backend = entry.get("backend") or entry.get("rater")
-    note = None if backend in OFFICIAL_BACKENDS else f"{backend} rater"
     if _finite(value):
+        note = None
+        if entry.get("paper_metric") is False:
+            note = str(entry.get("label") or f"{entry.get('backend')} (not the paper's metric)")
         return Cell(float(value), note=note)
     return missing(str(entry.get("reason") or f"metrics.json '{key}' has no value"))
 

@@ -349,7 +349,11 @@ def _strip(d: T.RunData, label: str, n: int):
 def _bgdo_sheet(a: T.RunData, b: T.RunData, path: Path, n: int, size: int) -> None:
     fa, ia, _ = FG.video_frames(a.rec["video"], n)
     fb, ib, _ = FG.video_frames(b.rec["video"], n)
-    rows = [("with BGDO", fa, None), ("without BGDO", fb, None)]
+    def label(d: T.RunData, what: str) -> str:
+        E = RD.params_E(d.params)
+        return f"{what} (E = {', '.join(f'{E[k]:.3g}' for k in sorted(E))} Pa)" if E else what
+
+    rows = [(label(a, "with BGDO"), fa, None), (label(b, "without BGDO"), fb, None)]
     if ia == ib:
         rows.append(("difference x4", FG.difference_frames(fa, fb), None))
     FG.strip_sheet(rows, path, size, caption=f"{a.rec['scene']}: BGDO vs no BGDO")
