@@ -67,6 +67,28 @@ def test_scores_read_the_metrics_package_schema():
     assert RD.score({"clip_score": "high"}, "CS").value is None
 
 
+def test_comparison_row_averages_scores_and_labels_a_stand_in_rater():
+    from physgs_steps.metrics import scores as MS
+
+    def run(scene, sa, pc):
+        m = {"schema_version": 2, "clip_score": MS.unavailable("clip_score", "metrics.clip_model_path is not set"),
+             "semantic_adherence": sa, "physical_commonsense": pc}
+        return T.RunData({"scene": scene, "variant": "physgs", "render": True}, metrics=m)
+
+    no_rater = MS.unavailable("semantic_adherence", "no VideoPhy2 rater configured")
+    runs = [run("a", MS.measured("semantic_adherence", 0.75, "videophy2_official", True),
+                MS.measured("physical_commonsense", 0.5, "videophy2_inprocess", False, label="stand-in")),
+            run("b", no_rater, MS.measured("physical_commonsense", 0.25, "videophy2_inprocess", False, label="stand-in"))]
+    row = T.method_row("physgs", "ours", runs, "cpu")
+    assert row["SA"].value == 0.75 and row["SA"].note == "1 of 2 scenes"
+    assert row["PC"].value == pytest.approx(0.375) and row["PC"].note == "stand-in"
+    assert row["CS"].value is None and "clip_model_path" in row["CS"].reason
+    notes = RP.Notes()
+    md = RP.md_table([row], RP.PAPER_COLS, notes)
+    assert "| 0.75 (1 of 2 scenes) | 0.38 (stand-in) |" in md and "n/a [1]" in md
+    assert notes.texts[0] == "metrics.clip_model_path is not set"
+
+
 def test_physical_figures_prefer_final_stats_and_keep_metrics():
     m = {"physical": {"det_F_min": {"value": 0.5}, "checks": {"stayed_in_domain": True}}}
     st = {"physical": {"det_F_min": {"value": 0.7}}}
@@ -135,6 +157,8 @@ def test_benchmark_runs_live_in_their_own_namespace_and_share_within_it():
     assert reg.for_id("benchmark/smoke/runs/bear", "fill", plans["no_ipf"].ids["fill"]).ablation == "no_ipf"
     with pytest.raises(ConfigError, match="no_such_scene"):
         reg.plan("no_such_scene")
+    with pytest.raises(ConfigError, match="unknown target 'benchmark/smoke/runs/bear/variants/nope'"):
+        reg.plan("benchmark/smoke/runs/bear/variants/nope")
 
 
 def test_ids_ignore_on_unstable_and_unset_initial_E():
