@@ -240,6 +240,22 @@ def test_penetration_and_final_difference(tmp_path):
     expect = 2000 * np.linalg.norm(moved - first, axis=1).mean()
     assert d["diff_mean_mm"].value == pytest.approx(expect, rel=1e-4) and d["frame"].value == 1
     assert d["ratio"].value == pytest.approx(1.0, rel=1e-4)
+    # the same motion stored per particle, frames at rest sharing a row (frame 2 repeats row 1)
+    with h5py.File(tmp_path / "p.h5", "w") as f:
+        f.create_dataset("x", data=np.stack([first, moved]).astype(np.float32))
+        f.create_dataset("particle_index", data=np.arange(800) + 5)
+        f.create_dataset("frame_row", data=np.array([0, 1, 1], np.int32))
+        f.create_dataset("time", data=np.arange(3) / 30.0)
+    with h5py.File(tmp_path / "particles.h5", "w") as f:
+        f.create_dataset("label", data=np.r_[np.full(5, 7), np.zeros(400), np.ones(400)].astype(np.int32))
+    pp = PH.penetration(str(tmp_path / "p.h5"), None, 0.2, 1.0, particles_h5=str(tmp_path / "particles.h5"))
+    assert pp["instance_penetration"].value == pytest.approx(pen["instance_penetration"].value)
+    assert pp["ground_penetration_mm"].value == pytest.approx(pen["ground_penetration_mm"].value)
+    assert RD.final_stats(str(tmp_path / "p.h5"))[1] and T.final_difference(str(tmp_path / "p.h5"), str(tmp_path / "g.h5"),
+                                                                           1.0)["frame"].value is None  # rows of different kinds
+    with h5py.File(tmp_path / "p.h5", "a") as f:
+        f.attrs["stats"] = json.dumps({"stable": True})
+    assert RD.final_stats(str(tmp_path / "p.h5"))[0]["frames_written"] == 3
 
 
 def test_report_cells_print_na_with_a_footnote():

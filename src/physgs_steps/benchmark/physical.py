@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .readers import Cell, missing
+from .readers import Cell, FinalView, missing
 
 
 def sample_frames(n_frames: int, n: int) -> list[int]:
@@ -50,8 +50,12 @@ def _inside_hull(points: np.ndarray, hull_pts: np.ndarray, chunk: int = 20000) -
 
 
 def penetration(final_h5: str, labels_npz: str | None, ground_height: float | None, domain_size: float = 1.0,
-                n_sample: int = 8, hull_points: int = 4000, test_points: int = 20000) -> dict:
-    """{"ground_penetration_mm", "ground_below_fraction", "instance_penetration"} as Cells."""
+                n_sample: int = 8, hull_points: int = 4000, test_points: int = 20000,
+                particles_h5: str | None = None) -> dict:
+    """{"ground_penetration_mm", "ground_below_fraction", "instance_penetration"} as Cells.
+
+    Instance labels come from labels.npz when final.h5 stores gaussians, from particles.h5
+    when it stores particles (readers.FinalView)."""
     import h5py
 
     out = {}
@@ -61,10 +65,14 @@ def penetration(final_h5: str, labels_npz: str | None, ground_height: float | No
         r = missing(f"cannot open {final_h5}: {e}")
         return {"ground_penetration_mm": r, "ground_below_fraction": r, "instance_penetration": r}
     with f:
-        x = f["x"]
-        frames = sample_frames(int(x.shape[0]), n_sample)
-        rows = np.asarray(f["gaussian_index"][...], np.int64) if "gaussian_index" in f else None
-        xs = {t: np.asarray(x[t], np.float64) for t in frames}
+        try:
+            view = FinalView(f)
+        except KeyError as e:
+            r = missing(f"{final_h5}: {e}")
+            return {"ground_penetration_mm": r, "ground_below_fraction": r, "instance_penetration": r}
+        frames = sample_frames(view.n_frames, n_sample)
+        rows, rows_of = view.index, view.index_of
+        xs = {t: view.x(t) for t in frames}
     if ground_height is None:
         r = missing("the scene has no ground plane")
         out["ground_penetration_mm"] = r
@@ -78,20 +86,35 @@ def penetration(final_h5: str, labels_npz: str | None, ground_height: float | No
                 below = max(below, float((z < ground_height).mean()))
         out["ground_penetration_mm"] = Cell(max(depth, 0.0) * domain_size * 1000.0)
         out["ground_below_fraction"] = Cell(below)
-    out["instance_penetration"] = _instance_penetration(xs, frames, rows, labels_npz, hull_points, test_points)
+    labels_all = _labels(labels_npz if rows_of == "gaussians" else particles_h5, rows_of)
+    out["instance_penetration"] = _instance_penetration(xs, frames, rows, labels_all, hull_points, test_points)
     return out
 
 
-def _instance_penetration(xs: dict, frames: list, rows, labels_npz, hull_points, test_points) -> Cell:
-    if labels_npz is None or rows is None:
+def _labels(path: str | None, rows_of: str) -> np.ndarray | Cell:
+    """[N] instance label per gaussian (labels.npz ``labels``) or per particle (particles.h5
+    ``label``), or a missing Cell with the reason."""
+    if path is None:
         return missing("no instance labels")
     try:
-        with np.load(labels_npz) as z:
-            labels_all = np.asarray(z["labels"])
+        if rows_of == "gaussians":
+            with np.load(path) as z:
+                return np.asarray(z["labels"])
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            return np.asarray(f["label"][...])
     except (OSError, KeyError, ValueError) as e:
-        return missing(f"cannot read {labels_npz}: {e}")
+        return missing(f"cannot read the instance labels of {path}: {e}")
+
+
+def _instance_penetration(xs: dict, frames: list, rows, labels_all, hull_points, test_points) -> Cell:
+    if isinstance(labels_all, Cell):
+        return labels_all
+    if rows is None:
+        return missing("final.h5 does not say which gaussians its columns are")
     if rows.size and rows.max() >= labels_all.size:
-        return missing("labels.npz does not match final.h5's gaussian rows")
+        return missing("the instance labels do not match final.h5's rows")
     lab = labels_all[rows]
     ids = sorted(int(k) for k in np.unique(lab))
     if len(ids) < 2:

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 
 @dataclass(frozen=True)
 class Cell:
@@ -101,6 +103,36 @@ def score(metrics: dict | None, name: str, why_missing: str | None = None) -> Ce
 
 
 # ------------------------------------------------------------------------------------ final.h5
+class FinalView:
+    """The frames of an open final.h5, whichever layout wrote them.
+
+    * per gaussian (``gaussian_index`` [Nv] rows of scene.ply, ``x`` [T, Nv, 3]);
+    * per stored particle (``particle_index`` [M] rows of particles.h5, ``frame_row`` [T]
+      -> the stored row of each frame, ``x`` [S, M, 3]: frames held at rest share a row).
+
+    ``index`` are the rows the columns belong to, ``index_of`` what they are rows of
+    ("gaussians" or "particles"); ``x(t)`` [n, 3] float64 positions of frame t.
+    """
+
+    def __init__(self, h5):
+        if "x" not in h5:
+            raise KeyError("final.h5 has no 'x' dataset")
+        self._x = h5["x"]
+        if "frame_row" in h5 and "particle_index" in h5:
+            self._row = np.asarray(h5["frame_row"][...], np.int64)
+            self.index = np.asarray(h5["particle_index"][...], np.int64)
+            self.index_of = "particles"
+            self.n_frames = int(self._row.shape[0])
+        else:
+            self._row = None
+            self.index = np.asarray(h5["gaussian_index"][...], np.int64) if "gaussian_index" in h5 else None
+            self.index_of = "gaussians"
+            self.n_frames = int(self._x.shape[0])
+
+    def x(self, t: int) -> np.ndarray:
+        return np.asarray(self._x[t if self._row is None else int(self._row[t])], np.float64)
+
+
 def final_stats(path: str | Path | None) -> tuple[dict | None, str | None]:
     """The ``stats`` attribute of a final.h5 (the run's stability, substeps, timings, and any
     physical figures final_sim accumulates), or (None, reason)."""
@@ -111,7 +143,7 @@ def final_stats(path: str | Path | None) -> tuple[dict | None, str | None]:
 
         with h5py.File(path, "r") as f:
             raw = f.attrs.get("stats")
-            n_frames = int(f["x"].shape[0]) if "x" in f else None
+            n_frames = FinalView(f).n_frames if "x" in f else None
     except OSError as e:
         return None, f"{path}: {e}"
     if raw is None:

@@ -251,7 +251,7 @@ class BenchmarkSpec:
             "render": v.render, "target": plan.target,
             "final": plan.path("final"), "params": plan.path("params", plan.steps[-1]), "params0": plan.path("params0"),
             "forward": [plan.path("forward", s) for s in plan.steps[:-1]],
-            "labels": plan.path("labels"), "fill_report": plan.path("fill_report"), "fill_id": plan.ids["fill"],
+            "labels": plan.path("labels"), "particles": plan.path("particles"), "fill_report": plan.path("fill_report"), "fill_id": plan.ids["fill"],
             "fill_label": fill_label(fill), "bgdo_iterations": len(plan.steps) - 1,
             "ground_height": None if ground is None else float(ground.get("height", 0.0)),
             "domain_size": float(plan.cfgs["sim"]["sim"].get("domain_size", 1.0)),

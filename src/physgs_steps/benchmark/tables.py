@@ -59,7 +59,7 @@ def load_run(rec: dict, penetration: bool = True) -> RunData:
     d.forward_stats = [RD.forward_stats(p) for p in rec.get("forward") or []]
     if penetration and Path(rec.get("final", "")).is_file():
         d.penetration = PH.penetration(rec["final"], rec.get("labels"), rec.get("ground_height"),
-                                       rec.get("domain_size", 1.0))
+                                       rec.get("domain_size", 1.0), particles_h5=rec.get("particles"))
     return d
 
 
@@ -326,21 +326,25 @@ def bgdo_change_row(scene: str, with_b: RunData | None, without_b: RunData | Non
 
 
 def final_difference(a: str, b: str, domain_size: float) -> dict:
-    """Mean and max distance (mm) between the same gaussians in two final.h5 at their last
-    common frame, and the mean displacement of run ``a`` from its first frame (mm)."""
+    """Mean and max distance (mm) between the same gaussians (or stored particles) in two
+    final.h5 at their last common frame, and the mean displacement of run ``a`` from its first
+    frame (mm)."""
     import h5py
 
     out = {}
     try:
         with h5py.File(a, "r") as fa, h5py.File(b, "r") as fb:
-            ia, ib = np.asarray(fa["gaussian_index"][...]), np.asarray(fb["gaussian_index"][...])
-            common, pa, pb = np.intersect1d(ia, ib, return_indices=True)
-            if common.size == 0:
-                r = missing("the two runs share no gaussian")
+            va, vb = RD.FinalView(fa), RD.FinalView(fb)
+            if va.index is None or vb.index is None or va.index_of != vb.index_of:
+                r = missing("the two final.h5 do not say which gaussians or particles they hold")
                 return {k: r for k in ("diff_mean_mm", "diff_max_mm", "disp_mean_mm", "ratio", "frame")}
-            t = min(fa["x"].shape[0], fb["x"].shape[0]) - 1
-            xa, xb = np.asarray(fa["x"][t], np.float64)[pa], np.asarray(fb["x"][t], np.float64)[pb]
-            x0 = np.asarray(fa["x"][0], np.float64)[pa]
+            common, pa, pb = np.intersect1d(va.index, vb.index, return_indices=True)
+            if common.size == 0:
+                r = missing(f"the two runs share no {va.index_of[:-1]}")
+                return {k: r for k in ("diff_mean_mm", "diff_max_mm", "disp_mean_mm", "ratio", "frame")}
+            t = min(va.n_frames, vb.n_frames) - 1
+            xa, xb = va.x(t)[pa], vb.x(t)[pb]
+            x0 = va.x(0)[pa]
     except (OSError, KeyError) as e:
         r = missing(f"cannot read final.h5: {e}")
         return {k: r for k in ("diff_mean_mm", "diff_max_mm", "disp_mean_mm", "ratio", "frame")}
