@@ -113,6 +113,9 @@ def test_E_history_band_and_fill_quality():
     q = RD.fill_quality({"n_filled": 5, "evaluation": {"available": False, "reason": "not a built-in scene"}})
     assert q["precision"].reason == "not a built-in scene" and q["seconds"].value is None
     assert RD.fill_quality(None)["recall"].reason == "no fill_report.json"
+    assert T._fate({"fate": "exploded", "rule": "exploded: E_cap"}).value == "exploded (E_cap)"
+    assert T._fate({"fate": "ok", "rule": "rigid"}).value == "rigid: skipped by BGDO"
+    assert "iterations 0" in T._fate(None).reason
 
 
 def test_job_records_from_benchmark_file_and_stage_summary(tmp_path):

@@ -280,6 +280,8 @@ def _fate(rec: dict | None) -> Cell:
     if not rec:
         return missing("no BGDO update (bgdo.iterations 0)")
     fate, rule = str(rec.get("fate")), str(rec.get("rule") or "")
+    if rule == "rigid":  # a rigid body or static geometry: its E does not enter the simulation
+        return Cell("rigid: skipped by BGDO")
     if rule.startswith(fate + ":"):
         rule = rule.split(":", 1)[1].strip()
     text = f"{fate} ({rule})" if rule else fate
