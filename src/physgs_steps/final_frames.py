@@ -44,7 +44,7 @@ FORMAT = "physgs-final/2"
 F16_MAX = 65504.0
 F16_BOUND_REL = 2.0 ** -11   # |F_read - F| <= F16_BOUND_REL |F - I| + F16_BOUND_ABS per entry
 F16_BOUND_ABS = 2.0 ** -25
-MOTION_ROWS = 20000  # positions per frame used for the motion box (a strided subset)
+MOTION_ROWS = 4096  # positions per frame used for the motion box (a strided subset)
 CODECS = ("none", "gzip", "lz4")
 
 

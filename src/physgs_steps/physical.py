@@ -54,31 +54,37 @@ class PhysicalFigures:
         if self.x0 is None:
             self.x0 = xt.copy()
         n_bad = 0
-        ok = np.isfinite(xt).all(axis=1)
-        n_bad += int((~ok).sum())
-        if ok.any():
-            d = np.linalg.norm(xt[ok] - self.x0[ok], axis=1)
-            d = d[np.isfinite(d)]
+        ok = np.isfinite(xt.sum(axis=1))  # [M]
+        all_ok = bool(ok.all())
+        n_bad += 0 if all_ok else int((~ok).sum())
+        xo, x0 = (xt, self.x0) if all_ok else (xt[ok], self.x0[ok])
+        if xo.shape[0]:
+            d = xo - x0
+            d = np.sqrt(np.einsum("ni,ni->n", d, d))
+            d = d[np.isfinite(d)] if not all_ok else d
             if d.size:
                 self.max_disp = max(self.max_disp, float(d.max()))
-            self.x_lo, self.x_hi = min(self.x_lo, float(xt[ok].min())), max(self.x_hi, float(xt[ok].max()))
-            out = ((xt[ok] < -self.margin) | (xt[ok] > 1.0 + self.margin)).any(axis=1)
-            self.out_frac_max = max(self.out_frac_max, float(out.mean()))
-            self.com[t] = xt[ok].mean(axis=0)
+            lo, hi = xo.min(axis=0), xo.max(axis=0)
+            self.x_lo, self.x_hi = min(self.x_lo, float(lo.min())), max(self.x_hi, float(hi.max()))
+            if lo.min() < -self.margin or hi.max() > 1.0 + self.margin:
+                out = ((xo < -self.margin) | (xo > 1.0 + self.margin)).any(axis=1)
+                self.out_frac_max = max(self.out_frac_max, float(out.mean()))
+            self.com[t] = xo.mean(axis=0)
         else:
             self.com[t] = np.nan
         self.out_frac_max = max(self.out_frac_max, float((~ok).mean()))   # NaN positions are not in the domain
         if ft is not None:
             self.has_f = True
-            ft = np.asarray(ft, dtype=np.float64)
-            fok = np.isfinite(ft).all(axis=(1, 2))
+            ft = np.asarray(ft, dtype=np.float32)
+            fok = np.isfinite(ft.sum(axis=(1, 2)))  # inf and nan entries make the sum non-finite
             n_bad += int((~fok).sum())
             if fok.any():
                 fv = ft[fok]
-                det = np.linalg.det(fv)
+                det = det3(fv.astype(np.float64))
                 self.det_min, self.det_max = min(self.det_min, float(det.min())), max(self.det_max, float(det.max()))
                 self.inverted_frac_max = max(self.inverted_frac_max, float((det <= 0).mean()))
-                dev = np.linalg.norm(fv - np.eye(3), axis=(1, 2))
+                d = fv - np.eye(3, dtype=np.float32)
+                dev = np.sqrt(np.einsum("nij,nij->n", d, d))
                 self.dev_mean[t] = float(dev.mean())
                 self.dev_last_max = float(dev.max())
         self.n_nonfinite += n_bad
@@ -175,6 +181,14 @@ def apply_thresholds(fig: dict, moved_threshold: float, margin: float) -> dict:
     out["all_checks_pass"] = all(checks.values())
     out["moved_threshold"], out["domain_margin"] = moved_threshold, margin
     return out
+
+
+def det3(F: np.ndarray) -> np.ndarray:
+    """[M] determinants of [M, 3, 3] matrices (cofactor expansion; np.linalg.det runs an LU
+    per matrix and is ~10x slower at these sizes)."""
+    return (F[:, 0, 0] * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1])
+            - F[:, 0, 1] * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
+            + F[:, 0, 2] * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
 
 
 def _num(v) -> float | None:
