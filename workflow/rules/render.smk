@@ -35,5 +35,6 @@ rule metrics:
     resources:
         mem_mb=res("metrics", "mem_mb"),
         runtime=runtime_min("metrics"),
+        gpu=gpu_count("metrics"),   # 0 unless "metrics" is in resources.gpu_stages (a VideoPhy2 rater on a GPU)
     script:
         "../scripts/metrics.py"
