@@ -61,6 +61,15 @@ def variants(ppcs: list[float]) -> dict:
     return out
 
 
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process (all threads) so far: on a shared machine the
+    work a stage does, where its wall time depends on the neighbours."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def run_variant(cfg: dict, scene: str, name: str, camera: dict | None, log_dir: Path, force: bool) -> dict:
     plan = P.make_plan(cfg, scene, name)
     rec = {"variant": name, "stages": {}}
@@ -75,7 +84,9 @@ def run_variant(cfg: dict, scene: str, name: str, camera: dict | None, log_dir: 
             outs = dict(outs, frames=str(Path(outs["video"]).parent / "frames"))
         elif not force and all(Path(o).exists() for o in outs.values()):
             continue
+        c0 = _cpu_seconds()
         res = run_stage(stage, _stage_fn(stage), ins, outs, scfg, str(log_dir / f"{scene}-{name}-{stage}.log"))
+        res["cpu_seconds"] = round(_cpu_seconds() - c0, 2)
         rec["stages"][stage] = res
     with open(plan.path("render_report")) as f:
         rec["render"] = json.load(f)
@@ -176,6 +187,10 @@ def main() -> int:
     ap.add_argument("--width", type=int, default=512)
     ap.add_argument("--bgdo", type=int, default=0, help="BGDO iterations (default 0: same parameters everywhere)")
     ap.add_argument("--skip-today", action="store_true", help="leave the 'today' variant out")
+    ap.add_argument("--skip-seed", action="store_true", help="leave the 'gaussians_seed1' variant out")
+    ap.add_argument("--today-only-if-rest", action="store_true",
+                    help="run 'today' only where the gaussians run held frames at rest (elsewhere it is the same "
+                         "simulation, written with gzip)")
     ap.add_argument("--carrier-every", type=int, default=5, help="frame stride of the carrier-only PSNR (0: skip it)")
     ap.add_argument("--force", action="store_true", help="re-run stages whose outputs exist")
     ap.add_argument("--out", default=None, help="also write the table (Markdown) and the records (JSON next to it)")
@@ -189,6 +204,8 @@ def main() -> int:
     vs = variants(args.ppc)
     if args.skip_today:
         vs.pop("today")
+    if args.skip_seed:
+        vs.pop("gaussians_seed1")
     cfg["ablations"] = vs
     C.validate_config(cfg)
     log_dir = Path("benchmarks/out/logs")
@@ -201,6 +218,8 @@ def main() -> int:
         camera = {"look_at": cam["look_at"], "radius": cam["radius"]} if cam.get("mode") == "orbit" else None
         recs = {"gaussians": ref}
         for name in vs:
+            if name == "today" and args.today_only_if_rest and not ref["final_stats"]["held_frames"]:
+                continue
             if name != "gaussians":
                 recs[name] = run_variant(cfg, scene, name, camera, log_dir, args.force)
         for name, r in recs.items():
@@ -221,18 +240,22 @@ def main() -> int:
 
 
 def table(records: dict, names: list[str]) -> list[str]:
-    head = ("| scene | variant | particles | sim s | final_sim s | substeps (held frames) | render s | final.h5 MiB "
+    head = ("| scene | variant | particles | sim s | final_sim s (CPU s) | substeps (held frames) | render s | final.h5 MiB "
             "| PSNR vs gaussians dB (video / worst frame) | carrier PSNR dB (video / worst) |")
     lines = [head, "|" + "---|" * 10]
     for scene, recs in records.items():
         for name in names:
+            if name not in recs:
+                continue
             r = recs[name]
             st = r["stages"].get("final_sim", {})
             fs = r["final_stats"]
             sim_s = st.get("seconds")
             q = "reference" if name == "gaussians" else f"{r['psnr_video']:.1f} / {r['psnr_worst_frame']:.1f}"
+            stage_s = "cached" if sim_s is None else f"{sim_s:.1f} ({st.get('cpu_seconds', float('nan')):.1f})"
             lines.append(f"| {scene} | {name} | {r['n_particles']} | {fs['simulate_seconds']:.1f} | "
-                         f"{f'{sim_s:.1f}' if sim_s is not None else 'cached'} | {fs['substeps_total']} ({fs['held_frames']}) | "
+                         f"{stage_s} | "
+                         f"{fs['substeps_total']} ({fs['held_frames']}) | "
                          f"{r['render']['seconds']:.1f} | {r['final_mib']:.1f} | {q} | "
                          f"{'%.1f / %.1f' % tuple(r['carrier_psnr']) if 'carrier_psnr' in r else ''} |")
     return lines

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError, SimulationError
+from .runtime import json_text
 
 FORMAT = "physgs-final/2"
 F16_MAX = 65504.0
@@ -133,9 +134,9 @@ class FinalWriter:
         box = None
         if np.isfinite(self.lo).all():
             box = {"frame": "sim" if self._to_source is None else "source", "box": [self.lo.tolist(), self.hi.tolist()]}
-        self.h5.attrs["motion_box"] = json.dumps(box)
+        self.h5.attrs["motion_box"] = json_text(box)
         for k, v in attrs.items():
-            self.h5.attrs[k] = v if isinstance(v, str) else json.dumps(v, default=str)
+            self.h5.attrs[k] = v if isinstance(v, str) else json_text(v, default=str)
 
 
 class FinalFrames:

@@ -25,7 +25,6 @@ changes.
 """
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -33,7 +32,7 @@ import h5py
 import numpy as np
 
 from .errors import ConfigError, InputError, SimulationError
-from .runtime import atomic_path, peak_rss_mb, read_json_input
+from .runtime import atomic_path, json_text, peak_rss_mb, read_json_input
 from .mpm.dynamics import Dynamics, describe_counts
 from .mpm.materials import Material
 from .mpm.rest import RestPolicy
@@ -220,9 +219,9 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
                 h.attrs["dt"] = float(s["dt"])
                 if substitute and k == substitute[0]:
                     h.attrs["substitute_for"] = np.array(substitute[1], np.int64)
-            f.attrs["params"] = json.dumps(params)
-            f.attrs["sim_config"] = json.dumps(_sim_config(cfg, solver, stepper), default=str)
-            f.attrs["stats"] = json.dumps(stats)
+            f.attrs["params"] = json_text(params)
+            f.attrs["sim_config"] = json_text(_sim_config(cfg, solver, stepper), default=str)
+            f.attrs["stats"] = json_text(stats)
     log.info("forward_sim: %s, %d substeps in %.1f s (+%.1f s first substep); key frames %s -> %s",
              "stable" if res.stable else "UNSTABLE", stats["substeps_total"], res.step_seconds,
              res.first_substep_seconds, sorted(snaps), outputs["keyframes"])
