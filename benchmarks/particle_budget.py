@@ -82,6 +82,8 @@ def run_variant(cfg: dict, scene: str, name: str, camera: dict | None, log_dir: 
             if camera is not None:
                 scfg["scene"].setdefault("camera", {}).update(camera)
             outs = dict(outs, frames=str(Path(outs["video"]).parent / "frames"))
+            if not force and _rendered(outs, plan.path("final"), scfg):
+                continue
         elif not force and all(Path(o).exists() for o in outs.values()):
             continue
         c0 = _cpu_seconds()
@@ -101,6 +103,22 @@ def run_variant(cfg: dict, scene: str, name: str, camera: dict | None, log_dir: 
     rec["final_stats"] = {k: st.get(k) for k in ("simulate_seconds", "substeps_total", "held_frames", "n_stored")}
     rec["final_mib"] = Path(plan.path("final")).stat().st_size / 2**20
     return rec
+
+
+def _rendered(outs: dict, final: str, scfg: dict) -> bool:
+    """Whether the PNG frames of this variant were rendered from the current final.h5 with the
+    same camera and size (then they are reused, not rendered again)."""
+    rep = Path(outs["report"]) if "report" in outs else Path(outs["video"]).parent / "render.json"
+    frames = Path(outs["frames"])
+    if not (rep.exists() and frames.is_dir() and Path(final).exists()):
+        return False
+    if rep.stat().st_mtime < Path(final).stat().st_mtime:
+        return False
+    r = json.loads(rep.read_text())
+    cam = scfg["scene"].get("camera") or {}
+    same_cam = all(r.get("camera", {}).get(k) == cam[k] for k in ("look_at", "radius") if k in cam)
+    return (same_cam and r.get("width") == scfg["render"]["width"]
+            and len(list(frames.glob("frame_*.png"))) == r.get("frames_rendered", -1))
 
 
 def carrier_psnr(cfg: dict, scene: str, camera: dict | None, ppc: float, every: int) -> tuple[float, float]:
