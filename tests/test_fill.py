@@ -138,7 +138,8 @@ def test_sphere_fill_counts_volume_and_inside():
     v = 4 / 3 * np.pi * 0.15 ** 3
     dx = 1 / 32
     assert inst.status == "filled" and inst.volume == pytest.approx(v, rel=0.05)
-    assert res.x.shape[0] == inst.n_filled == round(8 * inst.volume / dx ** 3)
+    ppc = fcfg()["particles_per_cell"]  # the default
+    assert res.x.shape[0] == inst.n_filled == round(ppc * inst.volume / dx ** 3)
     assert (np.linalg.norm(res.x - 0.5, axis=1) < 0.15 + 0.002).all()  # Qhull pre-merge tolerance 0.001
     assert (res.label == 0).all() and inst.duplicates == 0
     total_vol = res.vol_gaussians.sum() + res.vol_filled.sum()
