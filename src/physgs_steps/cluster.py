@@ -38,7 +38,8 @@ normalised domain) on the gaussian means. Here:
   ``STATIC`` (-1). Instances left out of ``region.instances`` (cluster labels, or the name
   or hint of a scene ``instances`` entry) or pinned ``static: true`` keep their label but
   are listed in labels.npz ``static_instances`` and flagged ``static`` in clusters.json:
-  the fill stage gives them no particles, they are drawn at rest and become colliders.
+  the fill stage gives them no particles, they are drawn at rest (their points inside the
+  domain are stored as collider geometry, particles.h5 ``static_x``).
 
 Bad input: all gaussians labelled noise -> ConfigError naming ``cluster.eps`` with the
 scene's typical neighbour distance; fewer clusters than listed instances (e.g. an eps that

@@ -694,7 +694,7 @@ def _fill_scene(means, labels, opacities, log_scales, quats, fcfg, log, timer, s
     members = [np.flatnonzero(labels == i) for i in range(k)]
     for i in static_labels:
         if 0 <= i < k:
-            insts[i].status, insts[i].reason = "static", "static instance: no particles (drawn at rest, a collider)"
+            insts[i].status, insts[i].reason = "static", "static instance: no particles (drawn at rest)"
     active = [inst for inst in insts if inst.status != "static"]
     warnings: list[str] = []
     voxel = None
