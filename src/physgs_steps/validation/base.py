@@ -223,18 +223,18 @@ def rel(a: float, b: float) -> float:
     return abs(a - b) / abs(b)
 
 
-def front_position(x: np.ndarray, axis: int, spacing: float, lateral_area_cells: float) -> float:
+def front_position(x: np.ndarray, axis: int, spacing: float, min_count: float, origin: float = 0.0) -> float:
     """The farthest coordinate along ``axis`` where the material is at least one particle layer
-    thick: particles are binned in slices of width ``spacing``; the front is the outer edge of
-    the last slice holding at least ``lateral_area_cells`` particles (one full layer across the
-    slab), or of the last non-empty slice contiguous with the body when none does."""
-    c = x[:, axis]
-    lo = c.min()
-    idx = np.floor((c - lo) / spacing).astype(int)
-    counts = np.bincount(idx)
-    full = np.flatnonzero(counts >= lateral_area_cells)
+    thick: particles are binned in slices ``[origin + k spacing, origin + (k + 1) spacing)``;
+    the front is the outer edge of the last slice holding at least ``min_count`` particles
+    (one full layer across a slab), or of the last non-empty slice when none does.  ``origin``
+    is the wall the material started against, so an undisturbed block measures exactly."""
+    k = np.floor((x[:, axis] - origin) / spacing).astype(int)
+    shift = min(int(k.min()), 0)  # particles behind the origin (pushed through a wall) still count
+    counts = np.bincount(k - shift)
+    full = np.flatnonzero(counts >= min_count)
     last = int(full[-1]) if len(full) else int(np.flatnonzero(counts)[-1])
-    return float(lo + (last + 1) * spacing)
+    return float(origin + (last + shift + 1) * spacing)
 
 
 def sine_fit(t: np.ndarray, y: np.ndarray, f_guess: float) -> tuple[float, float, float]:

@@ -322,7 +322,7 @@ class ColumnCollapse(Case):
 
         def on_frame(k, t, st):
             ts.append(t)
-            front.append(front_position(st["x"], 0, h, layer) - o["x0"])
+            front.append(front_position(st["x"], 0, h, layer, o["x0"]) - o["x0"])
             vmax.append(float(np.max(np.linalg.norm(st["v"], axis=1))))
 
         out = simulate(sc, setting, fps=fps, n_frames=n_frames, on_frame=on_frame, backend=backend, timeout_s=timeout_s,
@@ -378,7 +378,7 @@ class DamBreak(Case):
 
         def on_frame(k, t, st):
             T.append(t * scale)
-            Z.append((front_position(st["x"], 0, h, layer) - o["x0"]) / a)
+            Z.append((front_position(st["x"], 0, h, layer, o["x0"]) - o["x0"]) / a)
 
         out = simulate(sc, setting, fps=fps, n_frames=n_frames, on_frame=on_frame, backend=backend, timeout_s=timeout_s,
                        log=log)
