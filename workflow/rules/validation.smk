@@ -16,8 +16,10 @@ wildcard_constraints:
     vpair=r"[a-z_]+__[a-z_]+",
 
 
-def val_cfg(**extra):
-    return lambda w: {"validation": VAL, "device": DEVICE, **{k: getattr(w, v) for k, v in extra.items()}}
+def val_cfg(keys, **extra):
+    """The config a job reads (only these keys: a change elsewhere in `validation` re-runs nothing)."""
+    sub = {k: VAL[k] for k in keys}
+    return lambda w: {"validation": sub, "device": DEVICE, **{k: getattr(w, v) for k, v in extra.items()}}
 
 
 rule validation:
@@ -29,7 +31,7 @@ rule validation_run:
     output:
         record="results/validation/runs/{vcase}/{vvariant}/{vsetting}.json",
     params:
-        cfg=val_cfg(case="vcase", variant="vvariant", setting="vsetting"),
+        cfg=val_cfg(("backend", "timeout_s"), case="vcase", variant="vvariant", setting="vsetting"),
     log:
         "results/validation/logs/run-{vcase}-{vvariant}-{vsetting}.log",
     benchmark:
@@ -46,7 +48,7 @@ rule validation_sweep:
     output:
         result="results/validation/sweep/{vpair}.json",
     params:
-        cfg=val_cfg(pair="vpair"),
+        cfg=val_cfg(("backend", "scale", "sweep_timeout_s"), pair="vpair"),
     log:
         "results/validation/logs/sweep-{vpair}.log",
     benchmark:
@@ -60,8 +62,8 @@ rule validation_sweep:
 
 
 def val_before(w):
-    b = VAL.get("before")
-    return {"before": str(C.resolve_path(b))} if b else {}
+    b = VAL.get("before")  # --config gives null as a string
+    return {"before": str(C.resolve_path(b))} if b and str(b).lower() not in ("null", "none") else {}
 
 
 rule validation_report:
@@ -75,6 +77,7 @@ rule validation_report:
         summary="results/validation/summary.csv",
         table="results/validation/error_vs_time.csv",
         figures=[f"results/validation/figures/{c}.png" for c in VAL_CASES],
+        physics=[f"results/validation/figures/{c}_physics.png" for c in VAL_CASES if V.CASES[c].has_physics_plot],
     params:
         cfg=lambda w: {"validation": VAL, "device": DEVICE},
     log:

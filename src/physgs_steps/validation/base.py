@@ -305,6 +305,12 @@ class Case:
                          round(out.wall_seconds, 3), out.substeps, out.n_particles, bool(out.stable and not out.timed_out),
                          metrics, series or {}, out.message)
 
+    notes = ""  # Markdown: what the measurements of this case show and why (report)
+    has_physics_plot = False  # whether physics_plot draws the measured quantity against its reference
+
+    def physics_plot(self, ax, records: Sequence[dict]) -> None:  # pragma: no cover - optional
+        raise NotImplementedError
+
     def combine(self, records: Sequence[RunRecord]) -> float | None:
         """The case's error at one setting from its variants' records (None if any failed)."""
         errs = [r.error for r in records]

@@ -81,8 +81,9 @@ def _metric(rec: dict | None, metric: str):
 
 
 # ============================================================================ error vs run time
-def case_points(case: str, records: Sequence[dict]) -> list[dict]:
-    """One point per setting: the case's error (worst variant) and run time (sum over variants)."""
+def case_points(case: str, records: Sequence[dict], scale: str = "cpu") -> list[dict]:
+    """One point per setting: the case's error (worst of the variants the scale runs) and run
+    time (sum over them)."""
     by_setting: dict[str, list[dict]] = {}
     for r in records:
         if r["case"] == case:
@@ -92,7 +93,7 @@ def case_points(case: str, records: Sequence[dict]) -> list[dict]:
     for sid, recs in sorted(by_setting.items(), key=lambda kv: Setting.parse(kv[0])):
         s = Setting.parse(sid)
         have = {r["variant"] for r in recs}
-        complete = have >= set(c.variants)
+        complete = have >= set(c.variants_at(scale))
         errs = [r["error"] for r in recs]
         err = None if (not complete or any(e is None for e in errs)) else max(errs)
         pts.append({"case": case, "setting": sid, "n_grid": s.n_grid, "ppc": s.ppc, "cfl": s.cfl, "error": err,
@@ -169,12 +170,16 @@ def build(records: Sequence[dict], sweeps: Sequence[dict], out_dir: str | Path, 
     prov = R.provenance(scale=scale, device=device)
     all_pts, summary_rows = [], []
     for name, c in CASES.items():
-        pts = case_points(name, records)
+        pts = case_points(name, records, scale)
         if not pts:
             continue
         all_pts.extend(pts)
         fig = Path(figures[name]) if figures and name in figures else out / "figures" / f"{name}.png"
         case_figure(fig, name, pts, device)
+        if c.has_physics_plot:
+            with R.figure(out / "figures" / f"{name}_physics.png", size=(6.4, 4.2)) as (_, ax):
+                c.physics_plot(ax, [r for r in records if r["case"] == name])
+                ax.set_title(c.title, fontsize=10)
         ok = [p for p in pts if p["error"] is not None]
         d = next((p for p in pts if p["default"]), None)
         best = min(ok, key=lambda p: p["error"]) if ok else None
@@ -223,15 +228,18 @@ def build(records: Sequence[dict], sweeps: Sequence[dict], out_dir: str | Path, 
         recs = [r for r in records if r["case"] == name]
         md += [f"\n## {c.title} (`{name}`)\n", f"**Reference.** {c.reference}\n", f"**Error.** {c.error_doc}.\n",
                f"![{name}](figures/{name}.png)\n",
+               *([f"![{name} against its reference](figures/{name}_physics.png)\n"] if c.has_physics_plot else []),
+               *([f"**Notes.** {c.notes}\n"] if c.notes else []),
                R.markdown_table(pts, [R.Column("setting"), R.Column("error", "error", "{:.3g}"),
                                       R.Column("seconds", "s", "{:.3g}"), R.Column("substeps"),
                                       R.Column("particles"), R.Column("pareto", "Pareto"), R.Column("default")])]
         keys = sorted({k for r in recs for k, v in (r.get("metrics") or {}).items() if not isinstance(v, (list, dict))})
         if keys:
+            rows = [{**r, **{f"m_{k}": v for k, v in (r.get("metrics") or {}).items()}}
+                    for r in sorted(recs, key=lambda r: (r["variant"], Setting.parse(r["setting"])))]
             md += ["\nPer run:\n", R.markdown_table(
-                sorted(recs, key=lambda r: (r["variant"], Setting.parse(r["setting"]))),
-                [R.Column("variant"), R.Column("setting"), R.Column("error", "error", "{:.3g}")]
-                + [R.Column(k, k, "{:.4g}") for k in keys])]
+                rows, [R.Column("variant"), R.Column("setting"), R.Column("error", "error", "{:.3g}")]
+                + [R.Column(f"m_{k}", k, "{:.4g}") for k in keys])]
         bad = [r for r in recs if r["error"] is None]
         for r in bad:
             md.append(f"\n- run {r['variant']} {r['setting']} failed: {r.get('message') or 'no measurement'}\n")

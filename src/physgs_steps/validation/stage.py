@@ -66,7 +66,7 @@ def report(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
         if not isinstance(before, dict) or not isinstance(before.get("records"), list):
             raise InputError(inputs["before"], "a before snapshot needs a 'records' list (validation.report.snapshot)")
     device = sorted({r.get("backend", "cpu") for r in records} | {s.get("backend", "cpu") for s in sweeps}) or ["cpu"]
-    figures = {Path(p).stem: p for p in outputs.get("figures", [])}
+    figures = {Path(p).stem: p for p in outputs.get("figures", [])}  # the physics figures go next to them
     out_dir = Path(outputs["report"]).parent
     summary = build(records, sweeps, out_dir, scale=v["scale"], device="+".join(device), before=before, figures=figures)
     from .. import reporting as R
