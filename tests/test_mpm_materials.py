@@ -231,8 +231,9 @@ def test_presets_come_from_the_knowledge_base(name):
 
 
 def test_tearing_return_map_caps_tension_and_breaks():
-    """Tearing: principal elastic strain above fracture_strain becomes inelastic strain ep, the
-    stress fades with d = ep / fracture_softening, and a broken particle keeps only compression."""
+    """Tearing: principal elastic strain above fracture_strain becomes crack opening ep, the
+    tensile stresses fade with d = ep / fracture_softening, and a cracked particle keeps its
+    compression."""
     m = Material("stvk_hencky", "identity", E=E, nu=NU, density=1000.0, name="brittle", fracture_strain=0.05,
                  fracture_softening=0.2)
     s = MPMSolver([m], n_grid=16, backend="cpu")
@@ -245,8 +246,8 @@ def test_tearing_return_map_caps_tension_and_breaks():
     mu, lam = lame(E, NU)
     d = e1 / 0.2
     t = np.array([2 * mu * 0.05 + lam * 0.05, lam * 0.05, lam * 0.05])  # Hencky stress of the capped F
-    assert tau[1][0, 0] == pytest.approx((1 - d) * t[0], rel=1e-3)  # tension fades (mean stress > 0 is dropped)
-    assert ep[2] >= 0.2 and np.allclose(F_out[2], np.eye(3), atol=1e-6)  # broken in tension: no memory left
+    assert tau[1][0, 0] == pytest.approx((1 - d) * t[0], rel=1e-3)  # tension fades
+    assert ep[2] >= 0.2 and np.allclose(F_out[2], np.eye(3), atol=1e-6)  # cracked: tensile stretch forgotten
     assert np.allclose(F_out[3], 0.9 * np.eye(3), atol=1e-6) and tau[3][0, 0] < 0  # broken but still resists compression
     assert np.allclose(tau[3], tau[3][0, 0] * np.eye(3), atol=1e-3)
     with pytest.raises(ConfigError, match="fracture_softening"):
@@ -260,7 +261,7 @@ def test_pulled_bar_tears_only_with_fracture(tears):
     from physgs_steps.mpm import Dynamics
 
     m = Material("stvk_hencky", "von_mises", E=5e4, nu=0.25, density=250.0, yield_stress=2e3, name="bar",
-                 fracture_strain=0.1 if tears else None, fracture_softening=0.2)
+                 fracture_strain=0.03 if tears else None, fracture_softening=0.1)
     h = 1 / 64
     ax = [np.arange(lo + h / 2, hi, h) for lo, hi in ((0.3, 0.7), (0.47, 0.53), (0.47, 0.53))]
     x = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
@@ -271,9 +272,9 @@ def test_pulled_bar_tears_only_with_fracture(tears):
     for _ in range(250):  # 0.25 s: the ends move 0.15 m apart, 37% of the bar
         s.substep(1e-3)
     xs = np.sort(s.get_state()["x"][:, 0])
-    gap = np.diff(xs).max()  # measured: 2.6 dx with tearing, 1.2 dx without (the plastic bar necks)
+    gap = np.diff(xs).max()  # measured: 2.7 dx with tearing, 1.2 dx without (the plastic bar necks)
     if tears:
         assert gap > 2 / 32  # the pieces have parted
-        assert (s.get_state()["ep"] >= 0.2).sum() >= 16  # at least one cross-section (4 x 4 particles) broken
+        assert s.get_state()["ep"].max() >= 0.1  # fully cracked particles
     else:
         assert gap < 1.5 / 32

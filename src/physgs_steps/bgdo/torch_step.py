@@ -152,31 +152,29 @@ class PlasticParams:
 PLASTIC_KEYS = ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max", "fracture_strain", "fracture_softening")
 
 
-def fracture_step(F_trial: torch.Tensor, F_ret: torch.Tensor, ep: torch.Tensor, pp: PlasticParams) -> tuple:
-    """Tearing after the return map (mpm/materials.py, class Fracture): the inelastic strain
-    ``ep`` grows by the return's ``|log sig_trial - log sig_returned|`` and by what the tension
-    cut-off at ``fracture_strain`` removes; a fully damaged particle keeps ``cbrt(min(J, 1)) I``.
-    F_trial, F_ret  # [B, 3, 3]; ep  # [B]  ->  F  # [B, 3, 3], ep  # [B], d  # [B]"""
-    _, sig_t, _ = svd3(F_trial)
+def fracture_step(F_ret: torch.Tensor, ep: torch.Tensor, pp: PlasticParams) -> tuple:
+    """Tearing after the return map (mpm/materials.py, class Fracture): principal elastic
+    Hencky strains above ``fracture_strain`` are cut off and added to ``ep``; a fully cracked
+    particle (ep >= fracture_softening) forgets its tensile stretches.
+    F_ret  # [B, 3, 3]; ep  # [B]  ->  F  # [B, 3, 3], ep  # [B], d  # [B]"""
     U, sig, V = svd3(F_ret)
     e = torch.log(torch.clamp(sig, min=SIG_FLOOR))
-    ep = ep + (torch.log(torch.clamp(sig_t, min=SIG_FLOOR)) - e).norm(dim=-1)
     cap = pp.fracture_strain[:, None]
     ep = ep + torch.clamp(e - cap, min=0.0).sum(-1)
     e = torch.minimum(e, cap)
     d = torch.clamp(ep / pp.fracture_softening, max=1.0)
-    s = torch.exp(e)
-    F = U @ torch.diag_embed(s) @ V.transpose(-1, -2)
-    c = torch.pow(torch.clamp(s.prod(-1), max=1.0), 1.0 / 3.0)
-    broken = (d >= 1.0)[:, None, None]
-    F = torch.where(broken, c[:, None, None] * _eye(F.shape[0], F), F)
-    return F, ep, d
+    e = torch.where((d >= 1.0)[:, None], torch.clamp(e, max=0.0), e)
+    return U @ torch.diag_embed(torch.exp(e)) @ V.transpose(-1, -2), ep, d
 
 
-def degrade(tau: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-    """Stress of damaged particles: (1 - d) tau + d min(tr(tau) / 3, 0) I.  # tau [B, 3, 3], d [B]"""
-    p = torch.diagonal(tau, dim1=-2, dim2=-1).sum(-1) / 3.0
-    return (1.0 - d)[:, None, None] * tau + (d * torch.clamp(p, max=0.0))[:, None, None] * _eye(tau.shape[0], tau)
+def degrade(tau: torch.Tensor, F: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Stress of damaged particles: the tensile principal stresses fade by (1 - d), compression
+    stays (principal frame U of F, where the isotropic models' tau is diagonal).
+    tau, F  # [B, 3, 3], d  # [B] -> [B, 3, 3]"""
+    U, _, _ = svd3(F)
+    t = torch.diagonal(U.transpose(-1, -2) @ tau @ U, dim1=-2, dim2=-1)
+    t = torch.clamp(t, max=0.0) + (1.0 - d)[:, None] * torch.clamp(t, min=0.0)
+    return U @ torch.diag_embed(t) @ U.transpose(-1, -2)
 
 
 def _safe_unit(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -396,7 +394,7 @@ def particle_stress(F: torch.Tensor, log_E_p: torch.Tensor, table: InstanceTable
     if ep is not None and idx.numel():
         pp = table.plastic.subset(table.label[idx])
         d = torch.clamp(ep[idx] / pp.fracture_softening, max=1.0)
-        tau = tau.index_copy(0, idx, degrade(tau[idx], d))
+        tau = tau.index_copy(0, idx, degrade(tau[idx], F[idx], d))
     return tau, mu, lam
 
 
@@ -503,7 +501,7 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
     F_new = plastic_projection(F_trial, mu, lam, table)
     idx = _fracturing(table, F.device)
     if idx.numel():
-        F_f, ep_f, _ = fracture_step(F_trial[idx], F_new[idx], ep[idx], table.plastic.subset(table.label[idx]))
+        F_f, ep_f, _ = fracture_step(F_new[idx], ep[idx], table.plastic.subset(table.label[idx]))
         F_new = F_new.index_copy(0, idx, F_f)
         ep = ep.index_copy(0, idx, ep_f)
     return {"x": x / L, "v": v / L, "C": C, "F": F_new, "ep": ep, "tau": tau, "mu": mu, "lam": lam,

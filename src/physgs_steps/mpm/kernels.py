@@ -331,7 +331,7 @@ def _make_update(el: type, pl: type, fracture: bool = False):
         d = 0.0
         ep_out = ep
         if ti.static(fracture):
-            F_new, U2, sig2, V2, ep_out, d = M.Fracture.update(U2, sig2, V2, sig, ep, q)
+            F_new, sig2, ep_out, d = M.Fracture.update(U2, sig2, V2, ep, q)
         J = 0.0
         if ti.static(svd_ok):
             J = sig2[0] * sig2[1] * sig2[2]
@@ -343,7 +343,7 @@ def _make_update(el: type, pl: type, fracture: bool = False):
         else:
             tau = el.kirchhoff(F_new, J, mu, lam)
         if ti.static(fracture):
-            tau = M.Fracture.degrade(tau, d)
+            tau = M.Fracture.degrade(tau, U2, d)
         return F_new, tau, ep_out
 
     return update
@@ -361,16 +361,19 @@ def _make_stress(el: type, fracture: bool = False):
         sig = ti.Vector([1.0, 1.0, 1.0], dt=ti.f32)
         J = 0.0
         tau = ti.Matrix.zero(ti.f32, 3, 3)
-        if ti.static(el.needs_svd):
+        if ti.static(el.needs_svd or fracture):
             U, S, V = ti.svd(F)
             sig = ti.Vector([S[0, 0], S[1, 1], S[2, 2]], dt=ti.f32)
             J = sig[0] * sig[1] * sig[2]
-            tau = el.kirchhoff_svd(F, U, sig, V, J, mu, lam)
+            if ti.static(M.takes_svd(el)):
+                tau = el.kirchhoff_svd(F, U, sig, V, J, mu, lam)
+            else:
+                tau = el.kirchhoff(F, J, mu, lam)
         else:
             J = F.determinant()
             tau = el.kirchhoff(F, J, mu, lam)
         if ti.static(fracture):
-            tau = M.Fracture.degrade(tau, M.Fracture.damage(ep, q))
+            tau = M.Fracture.degrade(tau, U, M.Fracture.damage(ep, q))
         return tau
 
     return stress

@@ -323,42 +323,37 @@ class FluidPlasticity(Plasticity):
 class Fracture:
     """Tearing: a per-particle damage state in the constitutive path (mpm88's ``Jp`` slot).
 
-    ``ep`` [P] is the particle's accumulated inelastic Hencky strain: every plastic return of
-    the material's plasticity model adds ``|log sig_trial - log sig_returned|``, and the
-    tension cut-off adds what it removes.  The cut-off (Rankine): no principal elastic Hencky
-    strain exceeds ``fracture_strain``; the excess opens a crack instead.  Damage
-    ``d = min(ep / fracture_softening, 1)`` fades the stress's shear and tension,
-    ``tau_d = (1 - d) tau + d min(tr(tau) / 3, 0) I``, so a damaged particle keeps only
-    compression and neighbouring particles stop holding each other together: the grid lets
-    the pieces part.  A fully broken particle (d = 1) forgets its elastic shape,
-    ``F = cbrt(min(J, 1)) I``.  Softening localises in a band one or two cells wide, so the
-    energy a crack takes scales with dx (no crack-band regularisation).
+    A Rankine tension cut-off with softening (in the spirit of Wolper et al. 2019, "CD-MPM:
+    continuum damage material point methods for dynamic fracture animation"): no principal
+    elastic Hencky strain of a tearing material exceeds ``fracture_strain``; what the cut-off
+    removes is crack opening and accumulates in the particle's ``ep`` [P].  The damage
+    ``d = min(ep / fracture_softening, 1)`` fades the tensile principal stresses,
+    ``tau_d = U diag(min(t, 0) + (1 - d) max(t, 0)) U^T`` (t the principal Kirchhoff stresses,
+    U their directions), so a cracked particle no longer holds its neighbours together (the
+    grid lets the pieces part) but still resists compression.  A fully cracked particle
+    (d = 1) also forgets its tensile stretches (``e_i = min(e_i, 0)``).  Compression and
+    shear do not crack a material (its plasticity model handles them).  Softening localises
+    in a band one or two cells wide, so the energy a crack takes scales with dx (no crack-band
+    regularisation).
     """
 
     @staticmethod
     @ti.func
-    def update(U, sig, V, sig_trial, ep, q):
-        """(F, U, sig, V, ep, d) after the tension cut-off and the damage update of a returned
-        elastic state ``U diag(sig) V^T`` whose trial singular values were ``sig_trial``."""
+    def update(U, sig, V, ep, q):
+        """(F, sig, ep, d) after the tension cut-off and the damage update of a returned elastic
+        state ``U diag(sig) V^T`` (U and V are kept)."""
         e = _log_sig(sig)
-        ep_new = ep + (_log_sig(sig_trial) - e).norm()
+        ep_new = ep
         cap = q[_Q_FRACTURE_STRAIN]
         for i in ti.static(range(3)):
             if e[i] > cap:
                 ep_new += e[i] - cap
                 e[i] = cap
         d = ti.min(ep_new / q[_Q_FRACTURE_SOFTENING], 1.0)
-        s = ti.exp(e)
-        U_o = U
-        V_o = V
-        F = U @ _diag(s) @ V.transpose()
         if d >= 1.0:
-            c = ti.pow(ti.min(s[0] * s[1] * s[2], 1.0), 1.0 / 3.0)
-            s = ti.Vector([c, c, c], dt=ti.f32)
-            U_o = _eye()
-            V_o = _eye()
-            F = c * _eye()
-        return F, U_o, s, V_o, ep_new, d
+            e = ti.min(e, 0.0)
+        s = ti.exp(e)
+        return U @ _diag(s) @ V.transpose(), s, ep_new, d
 
     @staticmethod
     @ti.func
@@ -367,10 +362,12 @@ class Fracture:
 
     @staticmethod
     @ti.func
-    def degrade(tau, d):
-        """Stress of a particle with damage d: shear and tension fade, compression stays."""
-        p = tau.trace() / 3.0
-        return (1.0 - d) * tau + d * ti.min(p, 0.0) * _eye()
+    def degrade(tau, U, d):
+        """Stress of a particle with damage d: the tensile principal stresses (in the frame U
+        where the isotropic models' tau is diagonal) fade, compression stays."""
+        t = U.transpose() @ tau @ U
+        tt = ti.Vector([t[0, 0], t[1, 1], t[2, 2]], dt=ti.f32)
+        return U @ _diag(ti.min(tt, 0.0) + (1.0 - d) * ti.max(tt, 0.0)) @ U.transpose()
 
 
 ELASTICITY = {c.name: c for c in (FixedCorotated, NeoHookean, StVKHencky, Volume, FluidElasticity)}
