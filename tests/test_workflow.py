@@ -103,3 +103,32 @@ def test_no_bgdo_ablation_shares_upstream(finished):
     out = smk(finished, "-n", "results/bear/ablations/no_bgdo/video.mp4", "--configfile", str(TINY))
     rules = planned_rules(out)
     assert set(rules) == {"final_sim", "render"}, rules
+
+
+def test_outputs_are_strict_json_and_readable_under_the_umask(finished):
+    """Every JSON artifact (files and HDF5 JSON attributes) parses under a strict parser (no
+    Infinity/NaN), and every artifact has the mode the umask gives new files (issue #19)."""
+    import json
+    import os
+
+    import h5py
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+
+    umask = os.umask(0)
+    os.umask(umask)
+    want = 0o666 & ~umask
+    artifacts = [p for p in (finished / "results").rglob("*") if p.is_file()
+                 and p.suffix in (".json", ".h5", ".ply", ".npz", ".mp4", ".png", ".tsv") and "benchmarks" not in p.parts]
+    assert len(artifacts) > 10
+    for p in artifacts:
+        assert p.stat().st_mode & 0o777 == want, (p, oct(p.stat().st_mode))
+        if p.suffix == ".json":
+            strict(p.read_text())
+        if p.suffix == ".h5":
+            with h5py.File(p, "r") as f:
+                for k in ("params", "stats", "sim_config"):
+                    if k in f.attrs:
+                        strict(f.attrs[k])
+    assert not list((finished / "results").rglob(".*.part*")), "temporary files left behind"

@@ -4,6 +4,7 @@
     physgs stage fill bear                # run one stage of a target (inputs must exist)
     physgs stage forward_sim bear --step it0
     physgs stages bear                    # every stage of a target in order, in this process
+    physgs check                          # every problem of the config and of every scene file
 
 Snakemake is the way to run the pipeline (caching, clusters); this is for debugging a stage
 and for machines where only the library is installed (e.g. a GPU node for benchmarks).
@@ -102,7 +103,10 @@ def main(argv=None) -> int:
     sa.add_argument("target")
     sa.add_argument("--force", action="store_true")
     sa.add_argument("--summary", default=None, help="write per-stage seconds and memory to this JSON file")
+    sub.add_parser("check", help="list every problem of the global config and of every scene file (exit 1 if any)")
     args = ap.parse_args(argv)
+    if args.cmd == "check":
+        return _check(args.config)
     try:
         cfg = C.load_config(args.config)
         scene, abl = P.parse_target(args.target)
@@ -131,6 +135,21 @@ def main(argv=None) -> int:
     except PhysGSError as e:
         print(f"physgs: {e}", file=sys.stderr)
         return 1
+
+
+def _check(config_path) -> int:
+    from .check import check_all
+
+    problems, n_files = check_all(config_path)
+    for p in problems:
+        print(p)
+    files = len({p.file for p in problems})
+    if problems:
+        print(f"physgs check: {len(problems)} problem(s) in {files} file(s) ({n_files} scene files checked)",
+              file=sys.stderr)
+        return 1
+    print(f"physgs check: no problems (global config and {n_files} scene files)")
+    return 0
 
 
 if __name__ == "__main__":

@@ -16,6 +16,13 @@ wildcard_constraints:
     vpair=r"[a-z_]+__[a-z_]+",
 
 
+def val_request(stage):
+    """mem_mb and runtime (minutes) of a validation job (config section `resources`)."""
+    from physgs_steps import resources
+
+    return resources.request(config["resources"], stage)
+
+
 def val_cfg(keys, **extra):
     """The config a job reads (only these keys: a change elsewhere in `validation` re-runs nothing)."""
     sub = {k: VAL[k] for k in keys}
@@ -37,8 +44,8 @@ rule validation_run:
     benchmark:
         "results/validation/benchmarks/run-{vcase}-{vvariant}-{vsetting}.tsv"
     resources:
-        mem_mb=res("validation_run", "mem_mb"),
-        runtime=runtime_min("validation_run"),
+        mem_mb=val_request("validation_run")["mem_mb"],
+        runtime=lambda wildcards, attempt: val_request("validation_run")["runtime"] * attempt,
         gpu=gpu_count("validation_run"),
     script:
         "../scripts/validation_run.py"
@@ -54,8 +61,8 @@ rule validation_sweep:
     benchmark:
         "results/validation/benchmarks/sweep-{vpair}.tsv"
     resources:
-        mem_mb=res("validation_sweep", "mem_mb"),
-        runtime=runtime_min("validation_sweep"),
+        mem_mb=val_request("validation_sweep")["mem_mb"],
+        runtime=lambda wildcards, attempt: val_request("validation_sweep")["runtime"] * attempt,
         gpu=gpu_count("validation_sweep"),
     script:
         "../scripts/validation_sweep.py"
