@@ -75,12 +75,18 @@ def test_block_resting_on_the_ground_stays_put():
     x, vol = block([0.4, 0.4, 0.25], [0.5, 0.5, 0.3], 1 / 64, seed=0)
     x[:, 2] = np.maximum(x[:, 2], 0.25)
     dyn = D(ground={"height": 0.25, "surface": "separate", "friction": 0.5})
-    s = MPMSolver([JELLY.with_(E=1e6)], n_grid=32, dynamics=dyn, backend="cpu")
+    # E 1e5: P-wave speed 12 m/s, CFL 0.37 at dt 1 ms (E 1e6 would be past the explicit limit)
+    s = MPMSolver([JELLY.with_(E=1e5)], n_grid=32, dynamics=dyn, backend="cpu")
     s.set_particles(x, vol, np.zeros(len(x), int))
-    for _ in range(300):
+    z = []
+    for i in range(300):
         s.substep(1e-3)
+        if i % 50 == 49:
+            z.append(s.get_state()["x"][:, 2].mean())
     st = s.get_state()
-    assert np.abs(st["x"][:, 2].mean() - x[:, 2].mean()) < 2e-3  # settles (elastic sag), no sinking or drift
+    # settles within a fraction of a cell (where the floor acts on the grid: issue 15), then stays
+    assert abs(z[-1] - x[:, 2].mean()) < 0.25 / 32
+    assert np.ptp(z[2:]) < 1e-3  # no sinking or drift once settled
     assert np.abs(st["v"]).max() < 0.05
 
 

@@ -32,7 +32,11 @@ def runs(cfg: dict) -> list[tuple[str, str, str]]:
     scale = cfg.get("scale", "cpu")
     if scale not in SCALES:
         raise ConfigError("validation.scale", f"must be one of {', '.join(SCALES)}, got {scale!r}")
-    return [(n, v, s.id) for n in _cases(cfg) for s in CASES[n].settings(scale) for v in CASES[n].variants_at(scale)]
+    cap = cfg.get("max_grid")
+    if cap is not None and (not isinstance(cap, int) or isinstance(cap, bool) or cap < 8):
+        raise ConfigError("validation.max_grid", f"must be an integer >= 8 or null, got {cap!r}")
+    return [(n, v, s.id) for n in _cases(cfg) for s in CASES[n].settings(scale) for v in CASES[n].variants_at(scale)
+            if cap is None or s.n_grid <= cap]
 
 
 def sweep_pairs(cfg: dict) -> list[str]:
