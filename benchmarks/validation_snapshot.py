@@ -5,12 +5,16 @@ them in the format of results/validation/records.json.  To measure an older comm
 its tree, copy this checkout's ``src/physgs_steps/validation`` into it and point PYTHONPATH at
 it (the cases use only the solver's public API):
 
-    git archive 2ef56cb | tar -x -C /tmp/base
+    git archive abd8117 | tar -x -C /tmp/base
     cp -r src/physgs_steps/validation /tmp/base/src/physgs_steps/
-    PYTHONPATH=/tmp/base/src python benchmarks/validation_snapshot.py --label "main before #14 (2ef56cb)" \
-        --out src/physgs_steps/validation/data/before.json --settings g16-p8-c0.5 g32-p8-c0.5 --sweep cpu
+    cd /tmp/base && PYTHONPATH=/tmp/base/src python /path/to/benchmarks/validation_snapshot.py \
+        --label "main before #14 (abd8117)" --commit abd8117e20b377db371987d31061b51623b39745 \
+        --out before.json --settings g16-p8-c0.5 --cases free_fall rigid_rotation axial_vibration dam_break \
+        --extra free_fall/main/g32-p8-c0.5 column_collapse/a0.5/g32-p8-c0.5 column_collapse/a1/g32-p8-c0.5 \
+                column_collapse/a2/g32-p8-c0.5 column_collapse/a3/g32-p8-c0.5 dam_break/main/g32-p8-c0.5 \
+                dam_break/main/g64-p8-c0.5 column_collapse/a2/g48-p8-c0.5 --sweep smoke
 
-Prints one line per run; nothing is asserted.
+(this is how ``src/physgs_steps/validation/data/before.json`` was made).  Prints one line per run; nothing is asserted.
 """
 from __future__ import annotations
 
