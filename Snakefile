@@ -23,3 +23,12 @@ rule all:
     input:
         video=lambda w: plan_path(main_scene(), "video"),
         metrics=lambda w: plan_path(main_scene(), "metrics"),
+
+
+# The warm stage worker (config `worker`, src/physgs_steps/worker.py) lives as long as the run.
+onsuccess:
+    stop_worker()
+
+
+onerror:
+    stop_worker()

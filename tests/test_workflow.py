@@ -6,6 +6,7 @@ with the tiny configuration of tests/slurm/config.yaml (2000 gaussians, 16^3 gri
 """
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -20,9 +21,9 @@ TINY = REPO / "tests" / "slurm" / "config.yaml"
 LINKED = ["Snakefile", "workflow", "config", "src", "tests", "profiles"]
 
 
-def smk(cwd: Path, *args: str, timeout: float = 600) -> str:
+def smk(cwd: Path, *args: str, timeout: float = 600, env: dict | None = None) -> str:
     p = subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=cwd, capture_output=True, text=True,
-                       timeout=timeout, stdin=subprocess.DEVNULL)
+                       timeout=timeout, stdin=subprocess.DEVNULL, env=env)
     out = p.stdout + p.stderr
     assert p.returncode == 0, f"snakemake {' '.join(args)} failed:\n{out[-6000:]}"
     return out
@@ -46,7 +47,11 @@ def run_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def finished(run_dir):
-    smk(run_dir, "--cores", "2", "results/bear/stage_report.tsv", "--configfile", str(TINY))
+    # the GPU chain runs in the warm stage worker (worker.py), as on a GPU machine; the run stops it
+    env = dict(os.environ, PHYSGS_WORKER="1", PHYSGS_WORKER_DIR=str(run_dir / ".worker"))
+    out = smk(run_dir, "--cores", "2", "results/bear/stage_report.tsv", "--configfile", str(TINY), env=env)
+    assert "in the warm worker" in out and "stopped the warm stage worker" in out, out[-3000:]
+    assert not list((run_dir / ".worker").glob("*.sock"))
     return run_dir
 
 

@@ -46,7 +46,6 @@ import tracemalloc
 
 import numpy as np
 from scipy.spatial import cKDTree
-from sklearn.cluster import DBSCAN
 
 from .errors import ConfigError, InputError
 from .runtime import atomic_path, write_json
@@ -83,6 +82,8 @@ def dbscan_labels(points, eps: float, min_samples: int, algorithm: str = "auto",
     Returns:
         [N] int32 raw DBSCAN labels (0..K-1 in order of discovery, -1 = noise).
     """
+    from sklearn.cluster import DBSCAN  # lazy: 1-2 s of imports, not needed when boxes label
+
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"dbscan_labels: points must be [N, 3], got {pts.shape}")

@@ -292,7 +292,9 @@ def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, lo
     except Exception:
         log.error("stage %s crashed:\n%s", name, traceback.format_exc())
         _remove_outputs(outputs, log)
-        raise SystemExit(1) from None
+        exc = SystemExit(1)
+        exc.physgs_crash = True  # not a PhysGSError: the warm worker (worker.py) does not serve on
+        raise exc from None
     summary.setdefault("seconds", round(time.perf_counter() - t0, 3))
     summary.setdefault("peak_rss_mb", round(peak_rss_mb(), 1))
     cp = cuda_peak_mb()

@@ -156,3 +156,11 @@ def render_inputs(w):
 def report_jobs(w):
     plan = target_plan(w.target)
     return [{"rule": r, "step": s, "benchmark": plan.benchmark_path(r, s)} for r, s in plan.jobs()]
+
+
+def stop_worker():
+    """End the warm stage worker of this run's code (worker.py); it would end by itself when idle."""
+    from physgs_steps import worker as W
+
+    if W.shutdown():
+        print("physgs: stopped the warm stage worker", file=sys.stderr)
