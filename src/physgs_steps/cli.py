@@ -45,7 +45,7 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
         return {"scene": p("scene")}, {"labels": p("labels"), "clusters": p("clusters")}, plan.cfgs["cluster"]
     if name == "fill":
         return ({"scene": p("scene"), "transform": p("transform"), "labels": p("labels")},
-                {"particles": p("particles"), "report": p("fill_report")}, plan.cfgs["fill"])
+                {"particles": p("particles"), "carrier": p("carrier"), "report": p("fill_report")}, plan.cfgs["fill"])
     if name == "vlm_params":
         return ({"scene": p("scene"), "labels": p("labels"), "clusters": p("clusters")},
                 {"params": p("params0")}, plan.cfgs["params"])
@@ -54,7 +54,10 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
     if name in ("forward_sim", "final_sim"):
         step = step or ("it0" if name == "forward_sim" else plan.steps[-1])
         out = {"keyframes": p("forward", step)} if name == "forward_sim" else {"frames": p("final")}
-        return {"particles": p("particles"), "params": p("params", step)}, out, plan.cfgs["sim"]
+        ins = {"particles": p("particles"), "params": p("params", step)}
+        if name == "final_sim":
+            ins["transform"] = p("transform")
+        return ins, out, plan.cfgs["sim"]
     if name == "bgdo_update":
         if step is None or step == "it0":
             raise PhysGSError("bgdo_update needs --step it<i>-<id> with i >= 1; the plan's steps: " + ", ".join(plan.steps))
@@ -62,7 +65,7 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
         return ({"keyframes": p("forward", prev), "params": p("params", prev)},
                 {"params": p("params", step)}, plan.cfgs["bgdo"])
     if name == "render":
-        return ({"frames": p("final"), "scene": p("scene"), "transform": p("transform")},
+        return ({"frames": p("final"), "scene": p("scene"), "transform": p("transform"), "carrier": p("carrier")},
                 {"video": p("video"), "contact_sheet": p("contact_sheet"), "report": p("render_report")},
                 plan.cfgs["render"])
     if name == "metrics":

@@ -54,8 +54,8 @@ def _public_scene(scene_cfg: dict) -> dict:
 # The scene-file keys each stage reads. A stage gets only these (plus the file's path for
 # messages), so that editing e.g. the camera re-runs render alone (Snakemake's params trigger).
 SCENE_KEYS = {
-    "prepare": ("source", "builtin", "transform"),
-    "cluster": ("instances",),  # reduced to the geometry (name, at, box) below
+    "prepare": ("source", "builtin", "transform", "region"),  # region reduced to its box below
+    "cluster": ("instances", "region"),  # reduced to the geometry (name, at, box), static pins and choice below
     "fill": ("source", "builtin"),
     "params": ("prompt", "instances"),
     "sim": ("dynamics",),
@@ -67,10 +67,29 @@ SCENE_KEYS = {
 
 def scene_view(scene_cfg: dict, stage: str) -> dict:
     view = {k: copy.deepcopy(scene_cfg.get(k)) for k in SCENE_KEYS[stage] if k in scene_cfg}
+    if stage == "prepare" and "region" in view:
+        view["region"] = {"box": (view["region"] or {}).get("box")}
     if stage == "cluster":
-        view["instances"] = [{k: inst.get(k) for k in ("name", *_GEOMETRY_KEYS)} for inst in view.get("instances") or []]
+        region = view.pop("region", None) or {}
+        chosen = region.get("instances")
+        refs = {r for r in chosen or [] if isinstance(r, str)}
+        view["instances"] = [_cluster_entry(inst, refs) for inst in view.get("instances") or []]
+        if chosen is not None:
+            view["region"] = {"instances": chosen}
     view["_path"] = scene_cfg.get("_path")
     return view
+
+
+def _cluster_entry(inst: dict, refs: set) -> dict:
+    """What the cluster stage reads of a scene ``instances`` entry: its geometry, a static pin,
+    and its hint only when ``region.instances`` refers to it by hint (so editing a hint the
+    material stage reads does not re-run the clustering)."""
+    out = {k: inst.get(k) for k in ("name", *_GEOMETRY_KEYS)}
+    if inst.get("static"):
+        out["static"] = True
+    if inst.get("hint") is not None and inst.get("hint") in refs:
+        out["hint"] = inst["hint"]
+    return out
 
 
 @dataclass
@@ -97,6 +116,7 @@ class Plan:
             "clusters": f"{s}/cluster/{i.get('cluster')}/clusters.json",
             "particles": f"{s}/fill/{i.get('fill')}/particles.h5",
             "fill_report": f"{s}/fill/{i.get('fill')}/fill_report.json",
+            "carrier": f"{s}/fill/{i.get('fill')}/carrier.h5",
             "params0": f"{s}/params/{i.get('params')}/params.json",
             "video": f"{RESULTS}/{self.target}/video.mp4",
             "contact_sheet": f"{RESULTS}/{self.target}/contact_sheet.png",
@@ -154,13 +174,20 @@ def make_plan(cfg: dict, scene: str, ablation: str | None = None) -> Plan:
     instances = pub.get("instances") or []
     geometry = [{k: inst.get(k) for k in _GEOMETRY_KEYS} for inst in instances]
     p.cfgs["cluster"] = {"scene": scene_view(sc, "cluster"), "cluster": sec["cluster"]}
-    p.ids["cluster"] = "dbscan-" + short_hash([sec["cluster"], geometry, p.cfgs["prepare"]])
+    view = p.cfgs["cluster"]["scene"]
+    choice = [[e.get("static"), e.get("hint")] for e in view["instances"]] + [view.get("region")]
+    # scenes without static pins or a region choice keep the ids they had before those keys existed
+    p.ids["cluster"] = "dbscan-" + short_hash([sec["cluster"], geometry, p.cfgs["prepare"]]
+                                              + ([choice] if any(c is not None and c != [None, None] for c in choice) else []))
 
     fill = copy.deepcopy(sec["fill"])
     if fill.get("n_grid") is None:
         fill["n_grid"] = sec["sim"]["n_grid"]
+    if fill.get("particles") is None:
+        fill["particles"] = sec["sim"]["particles"]
     p.cfgs["fill"] = {"scene": scene_view(sc, "fill"), "fill": fill}
     tag = fill["method"] if fill["method"] != "ipf" else f"ipf-{fill['occupancy']}-{'mcis' if fill['mcis'] else 'uniform'}"
+    tag += "-gaussians" if fill["particles"] == "gaussians" else ""
     p.ids["fill"] = f"{tag}-" + short_hash([fill, p.ids["cluster"]])
 
     from .params.stage import fully_pinned

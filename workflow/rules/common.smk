@@ -138,6 +138,10 @@ def sim_inputs(w):
     return {"particles": plan.path("particles"), "params": plan.path("params", w.step)}
 
 
+def final_inputs(w):
+    return dict(sim_inputs(w), transform=plan_for(w, "sim").path("transform"))
+
+
 def bgdo_inputs(w):
     plan = plan_for(w, "sim")
     prev = P.previous_step(w.step)
@@ -146,7 +150,8 @@ def bgdo_inputs(w):
 
 def render_inputs(w):
     plan = target_plan(w.target)
-    ins = {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform")}
+    ins = {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform"),
+           "carrier": plan.path("carrier")}
     cam = plan.cfgs["render"]["scene"].get("camera") or {}
     if cam.get("mode") == "cameras_json":  # an INRIA training run's cameras.json
         ins["cameras"] = str(C.resolve_path(cam["cameras_json"]))

@@ -250,8 +250,8 @@ def _read_labels(path: str) -> np.ndarray:
         raise InputError(path, f"cannot read 'labels' from the npz: {e}") from None
     if labels.ndim != 1 or not np.issubdtype(labels.dtype, np.integer):
         raise InputError(path, f"'labels' must be a 1-D integer array, got {labels.dtype} {labels.shape}")
-    if labels.size and labels.min() < 0:
-        raise InputError(path, f"'labels' has negative ids (min {labels.min()})")
+    if labels.size and labels.min() < -1:  # -1: static surroundings (outside region.box), no material
+        raise InputError(path, f"'labels' has ids below -1 (min {labels.min()})")
     return labels
 
 
