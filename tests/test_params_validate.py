@@ -141,6 +141,6 @@ def test_fully_pinned_rules(kb):
 
 def test_merge_pins_material_preset_and_overrides(kb):
     vals, notes = V.merge_pins(base(kb), {"material": "sand", "E": 7e5}, kb)
-    assert vals["material"] == "sand" and vals["E"] == 7e5 and vals["plasticity"] == "drucker_prager"
+    assert vals["material"] == "sand" and vals["E"] == 7e5 and vals["plasticity"] == "mohr_coulomb"
     vals, notes = V.merge_pins(base(kb), {"plasticity": "von_mises"}, kb)
     assert vals["plasticity_params"]["yield_stress"] is not None and notes[0]["action"] == "filled"

@@ -204,6 +204,7 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
         log.warning("forward run unstable: key frames %s replaced by the last stable frame %d", missing, k)
     stats = _stats(res, solver, {"key_frames_requested": keys, "key_frames_written": sorted(snaps),
                                  "forward_frames": n_frames})
+    tears = any(m.fractures for m in solver.materials)  # ep is stored for tearing materials only
     with atomic_path(outputs["keyframes"]) as tmp:
         with h5py.File(tmp, "w") as f:
             g = f.create_group("particles")
@@ -214,7 +215,7 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
             for k in sorted(snaps):
                 s = snaps[k]
                 h = kf.create_group(str(k))
-                for name in ("x", "v", "C", "F"):
+                for name in ("x", "v", "C", "F") + (("ep",) if tears else ()):
                     h.create_dataset(name, data=s[name].astype(np.float32))
                 h.attrs["frame"] = k
                 h.attrs["time"] = float(s["time"])

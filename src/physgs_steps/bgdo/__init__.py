@@ -210,7 +210,7 @@ from __future__ import annotations
 
 from .torch_step import (  # noqa: F401
     ELASTICITY, PLASTICITY, SIG_FLOOR, J_FLOOR, SVD_GAP, canonical_elasticity, canonical_plasticity,
-    svd3, lame, kirchhoff, PlasticParams, return_map, InstanceTable, instance_table,
+    svd3, lame, kirchhoff, PlasticParams, PLASTIC_KEYS, return_map, fracture_step, degrade, InstanceTable, instance_table,
     log_E_from_instances, GridSpec, particle_stress, plastic_projection, mpm_step, pseudo_step,
 )
 from .update import (  # noqa: F401

@@ -284,6 +284,7 @@ def _complete_plasticity_params(model: str, pp: dict, material: str, kb: dict, n
         if full[k] is not None:
             continue
         donors = ([kb[material]] if material in kb else []) + [e for e in kb.values() if e["plasticity"] == model]
+        donors += [e for e in kb.values() if k in materials_kb.REQUIRED_PLASTICITY_PARAMS[e["plasticity"]]]
         for e in donors:
             if e["plasticity_params"].get(k) is not None:
                 full[k] = e["plasticity_params"][k]
