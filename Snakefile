@@ -14,6 +14,7 @@ include: "workflow/rules/params.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/benchmark.smk"
 include: "workflow/rules/validation.smk"
 
 

@@ -4,6 +4,7 @@
     physgs stage fill bear                # run one stage of a target (inputs must exist)
     physgs stage forward_sim bear --step it0
     physgs stages bear                    # every stage of a target in order, in this process
+    physgs plan benchmark/cpu/runs/bear/variants/baseline   # a benchmark run (README "Regenerating the benchmark")
     physgs check                          # every problem of the config and of every scene file
     physgs bench pipeline bear            # time the whole pipeline per structure (pipeline_bench.py)
 
@@ -104,8 +105,7 @@ def main(argv=None) -> int:
         return bench_main(args.rest)
     try:
         cfg = C.load_config(args.config)
-        scene, abl = P.parse_target(args.target)
-        plan = P.make_plan(cfg, scene, abl)
+        plan = P.plan_for_target(cfg, args.target)
         if args.cmd == "plan":
             print(json.dumps({"target": plan.target, "ids": plan.ids, "steps": plan.steps,
                               "paths": {k: plan.path(k) for k in ("scene", "labels", "particles", "params0", "final", "video")},

@@ -124,6 +124,17 @@ class FinalWriter:
             raise ValueError("hold() before any frame was stored")
         self.frame_row[k] = self.rows - 1
 
+    def truncate(self, n: int) -> None:
+        """Keep frames 0..n-1 only (an unstable run kept with ``sim.on_unstable: keep``)."""
+        n = int(n)
+        if not 1 <= n <= self.n_frames:
+            raise ValueError(f"truncate({n}) outside 1..{self.n_frames}")
+        time = np.asarray(self.h5["time"][:n], np.float64)
+        del self.h5["time"]
+        self.h5.create_dataset("time", data=time)
+        self.frame_row = self.frame_row[:n]
+        self.n_frames = n
+
     def finish(self, attrs: dict) -> None:
         """Write ``frame_row`` and the attributes (dicts become JSON). Every frame must be set."""
         missing = np.flatnonzero(self.frame_row < 0)

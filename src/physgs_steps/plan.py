@@ -16,6 +16,11 @@ upstream id, so only ``render`` re-runs.
     results/{scene}/sim/{sim_id}/{step_N}/final.h5             final_sim with params_N
     results/{target}/video.mp4, metrics.json                   render, metrics
 where target is ``{scene}`` (default pipeline) or ``{scene}/ablations/{name}``.
+
+The benchmark (physgs_steps.benchmark) runs the same rules in its own namespace: its "scene"
+is the key ``benchmark/{scale}/runs/{name}`` (so every artifact lies under
+``results/benchmark/{scale}/runs/{name}/``, apart from a user's runs of the same scene, which
+may have other sizes) and its variants are ``{key}/variants/{variant}``.
 """
 from __future__ import annotations
 
@@ -45,6 +50,15 @@ def short_hash(obj) -> str:
     """8 hex digits of a SHA-1 of ``obj`` (keys starting with '_', e.g. file paths, left out)."""
     blob = json.dumps(_strip_private(obj), sort_keys=True, default=str).encode()
     return hashlib.sha1(blob).hexdigest()[:8]
+
+
+# Config keys that decide nothing a stage writes for a run that succeeds, left out of the ids:
+# sim.on_unstable only says whether an unstable final run stops or keeps its stable frames.
+_NOT_HASHED = {"sim": ("on_unstable",)}
+
+
+def _hashed(section: str, cfg: dict) -> dict:
+    return {k: v for k, v in cfg.items() if k not in _NOT_HASHED.get(section, ())}
 
 
 def _public_scene(scene_cfg: dict) -> dict:
@@ -94,16 +108,22 @@ def _cluster_entry(inst: dict, refs: set) -> dict:
 
 @dataclass
 class Plan:
-    scene: str
+    scene: str          # the folder under results/: a scene name, or a benchmark key benchmark/<scale>/runs/<name>
     ablation: str | None
     cfgs: dict = field(default_factory=dict)  # stage -> cfg passed to the stage
     ids: dict = field(default_factory=dict)   # artifact kind -> id
     steps: list = field(default_factory=list)  # ["it0", "it1-<bgdo_id>", ...]
     pinned: bool = False  # every instance pinned: params come from the scene file alone
+    variant_dir: str = "ablations"  # the path segment before a variant's name ("variants" in the benchmark)
+
+    @property
+    def name(self) -> str:
+        """The scene file's name (``bear`` also for the benchmark key ``benchmark/cpu/runs/bear``)."""
+        return self.scene.rsplit("/", 1)[-1]
 
     @property
     def target(self) -> str:
-        return self.scene if not self.ablation else f"{self.scene}/ablations/{self.ablation}"
+        return self.scene if not self.ablation else f"{self.scene}/{self.variant_dir}/{self.ablation}"
 
     # ---------------------------------------------------------------- paths
     def path(self, kind: str, step: str | None = None) -> str:
@@ -146,28 +166,41 @@ class Plan:
 
     def benchmark_path(self, rule: str, step: str | None = None) -> str:
         """Where Snakemake's ``benchmark:`` file of a job of this plan lies (see workflow/rules)."""
-        s, i = f"{RESULTS}/{self.scene}/benchmarks", self.ids
+        return self._job_file("benchmarks", "tsv", rule, step)
+
+    def log_path(self, rule: str, step: str | None = None) -> str:
+        """Where the ``log:`` file of a job of this plan lies (see workflow/rules)."""
+        return self._job_file("logs", "log", rule, step)
+
+    def _job_file(self, folder: str, ext: str, rule: str, step: str | None) -> str:
+        s, i = f"{RESULTS}/{self.scene}/{folder}", self.ids
         names = {
-            "prepare": f"{s}/prepare.tsv",
-            "cluster": f"{s}/cluster-{i['cluster']}.tsv",
-            "fill": f"{s}/fill-{i['fill']}.tsv",
-            "vlm_params": f"{s}/vlm_params-{i['params']}.tsv",
-            "pinned_params": f"{s}/pinned_params-{i['params']}.tsv",
-            "render": f"{RESULTS}/{self.target}/benchmarks/render.tsv",
-            "metrics": f"{RESULTS}/{self.target}/benchmarks/metrics.tsv",
+            "prepare": f"{s}/prepare.{ext}",
+            "cluster": f"{s}/cluster-{i['cluster']}.{ext}",
+            "fill": f"{s}/fill-{i['fill']}.{ext}",
+            "vlm_params": f"{s}/vlm_params-{i['params']}.{ext}",
+            "pinned_params": f"{s}/pinned_params-{i['params']}.{ext}",
+            "render": f"{RESULTS}/{self.target}/{folder}/render.{ext}",
+            "metrics": f"{RESULTS}/{self.target}/{folder}/metrics.{ext}",
         }
         if rule in names:
             return names[rule]
-        return f"{s}/{rule}-{i['sim']}-{step}.tsv"
+        return f"{s}/{rule}-{i['sim']}-{step}.{ext}"
 
 
-def make_plan(cfg: dict, scene: str, ablation: str | None = None) -> Plan:
-    """Compute the stage configs and artifact ids of one target."""
-    sc = C.load_scene(cfg, scene)
+def make_plan(cfg: dict, scene: str, ablation: str | None = None, *, scene_cfg: dict | None = None,
+              key: str | None = None, variant_dir: str = "ablations") -> Plan:
+    """Compute the stage configs and artifact ids of one target.
+
+    ``scene_cfg`` (a validated scene dict, e.g. with a benchmark scale's sizes) replaces the
+    scene file ``scene``; ``key`` is the plan's folder under results/ (default ``scene``);
+    ``ablation`` names an entry of ``cfg["ablations"]``.
+    """
+    sc = C.load_scene(cfg, scene) if scene_cfg is None else scene_cfg
     pub = _public_scene(sc)
     sec = {s: C.effective_section(cfg, sc, s, ablation) for s in C.SECTIONS}
     device = cfg.get("device", "auto")
-    p = Plan(scene, ablation)
+    p = Plan(key or scene, ablation, variant_dir=variant_dir)
 
     p.cfgs["prepare"] = {"scene": scene_view(sc, "prepare"), "prepare": sec["prepare"]}
 
@@ -197,11 +230,14 @@ def make_plan(cfg: dict, scene: str, ablation: str | None = None) -> Plan:
     # a scene that pins every instance leaves the material backend (vlm_params) out
     p.pinned = fully_pinned(pub)
     tag = "pinned" if p.pinned else sec["materials"]["backend"]
-    p.ids["params"] = tag + "-" + short_hash([material_view, p.ids["cluster"]] + ([] if p.pinned else [sec["materials"]]))
+    # materials.initial_E (a deliberate start E) counts only when set, so that ids made before it existed stay
+    mat = {k: v for k, v in sec["materials"].items() if k != "initial_E"}
+    start = [] if sec["materials"].get("initial_E") is None else [{"initial_E": sec["materials"]["initial_E"]}]
+    p.ids["params"] = tag + "-" + short_hash([material_view, p.ids["cluster"]] + ([] if p.pinned else [mat]) + start)
 
     bgdo = sec["bgdo"]
     forward_keys = {k: bgdo[k] for k in ("key_frames", "forward_frames") if k in bgdo}
-    sim_view = {"sim": sec["sim"], "dynamics": pub.get("dynamics"), "forward": forward_keys}
+    sim_view = {"sim": _hashed("sim", sec["sim"]), "dynamics": pub.get("dynamics"), "forward": forward_keys}
     # the simulation reads only the key-frame settings of bgdo: other BGDO keys must not re-run it
     p.cfgs["sim"] = {"scene": scene_view(sc, "sim"), "sim": sec["sim"], "bgdo": forward_keys, "device": device}
     p.ids["sim"] = "mpm-" + short_hash([sim_view, p.ids["fill"], p.ids["params"]])
@@ -217,13 +253,21 @@ def make_plan(cfg: dict, scene: str, ablation: str | None = None) -> Plan:
 
 
 def parse_target(target: str) -> tuple[str, str | None]:
-    """``bear`` -> ("bear", None); ``bear/ablations/no_bgdo`` -> ("bear", "no_bgdo")."""
+    """``bear`` -> ("bear", None); ``bear/ablations/no_bgdo`` -> ("bear", "no_bgdo");
+    ``benchmark/cpu/runs/bear/variants/baseline`` -> ("benchmark/cpu/runs/bear", "baseline")."""
     parts = target.split("/")
-    if len(parts) == 1:
-        return parts[0], None
-    if len(parts) == 3 and parts[1] == "ablations":
-        return parts[0], parts[2]
-    raise ConfigError("target", f"'{target}' is neither <scene> nor <scene>/ablations/<name>")
+    head = 4 if len(parts) >= 4 and parts[0] == BENCHMARK and parts[2] == "runs" else 1
+    key, rest = "/".join(parts[:head]), parts[head:]
+    if not rest:
+        return key, None
+    segment = "variants" if head == 4 else "ablations"
+    if len(rest) == 2 and rest[0] == segment and rest[1]:
+        return key, rest[1]
+    raise ConfigError("target", f"'{target}' is neither <scene> nor <scene>/ablations/<name> nor "
+                      "benchmark/<scale>/runs/<scene>[/variants/<name>]")
+
+
+BENCHMARK = "benchmark"
 
 
 def step_index(step: str) -> int:
@@ -237,55 +281,98 @@ def previous_step(step: str) -> str:
     return "it0" if i == 1 else f"it{i - 1}-{step.split('-', 1)[1]}"
 
 
-class Registry:
-    """The plans the workflow knows (every scene x every ablation), indexed by artifact id,
-    so that a rule can find the config belonging to an id in its output path.
+def plans_of(cfg: dict, key: str) -> list[Plan]:
+    """Every plan of one scene key: the scene with each ablation, or a benchmark key's variants."""
+    if key.startswith(BENCHMARK + "/"):
+        from .benchmark.spec import spec_for_key
 
-    Plans are made on first use, one scene (with all its ablations) at a time, so a scene
-    file with a problem blocks only its own targets: the problem is recorded and raised when
-    one of them is asked for (``snakemake`` for other scenes, ``-n`` included, is unaffected).
+        spec, name = spec_for_key(cfg, key)
+        return spec.plans(name)
+    return [make_plan(cfg, key, abl) for abl in [None, *sorted(cfg.get("ablations") or {})]]
+
+
+def plan_for_target(cfg: dict, target: str) -> Plan:
+    """The plan of one target (a scene, an ablation or a benchmark run)."""
+    key, variant = parse_target(target)
+    if key.startswith(BENCHMARK + "/"):
+        for plan in plans_of(cfg, key):
+            if plan.ablation == variant:
+                return plan
+        raise ConfigError("target", f"'{target}': the benchmark has no variant '{variant}'")
+    return make_plan(cfg, key, variant)
+
+
+class Registry:
+    """The plans the workflow knows (every scene x every ablation, and the benchmark's runs x
+    their variants), indexed by artifact id, so that a rule can find the config belonging to an
+    id in its output path.
+
+    Plans are made on first use, one scene key (with all its ablations or variants) at a time,
+    so a dry run of one scene builds only that scene's plans, and a scene file with a problem
+    blocks only its own targets: the problem is recorded and raised when one of them is asked
+    for (``snakemake`` for other scenes, ``-n`` included, is unaffected).
     """
 
     def __init__(self, cfg: dict, scenes: list[str]):
         self.cfg = cfg
         self.scenes = list(scenes)
         self.plans: dict[str, Plan] = {}
-        self.problems: dict[str, PhysGSError] = {}  # target -> why it has no plan
+        self.problems: dict[str, PhysGSError] = {}  # target (or benchmark key) -> why it has no plan
         self.by_id: dict[tuple[str, str, str], Plan] = {}
         self._loaded: set[str] = set()
 
     def ablations(self) -> list[str]:
         return sorted(self.cfg.get("ablations") or {})
 
-    def _load(self, scene: str) -> None:
-        if scene in self._loaded:
+    def _add(self, key: str, plan: Plan) -> None:
+        self.plans[plan.target] = plan
+        for kind, ident in plan.ids.items():
+            self.by_id.setdefault((key, kind, ident), plan)
+
+    def _load(self, key: str) -> None:
+        if key in self._loaded:
             return
-        self._loaded.add(scene)
-        for abl in [None, *self.ablations()]:
-            target = scene if abl is None else f"{scene}/ablations/{abl}"
+        self._loaded.add(key)
+        if key.startswith(BENCHMARK + "/"):
             try:
-                plan = make_plan(self.cfg, scene, abl)
+                plans = plans_of(self.cfg, key)
+            except PhysGSError as e:
+                self.problems[key] = e
+                return
+            for plan in plans:
+                self._add(key, plan)
+            return
+        for abl in [None, *self.ablations()]:
+            target = key if abl is None else f"{key}/ablations/{abl}"
+            try:
+                plan = make_plan(self.cfg, key, abl)
             except PhysGSError as e:
                 self.problems[target] = e
                 continue
-            self.plans[target] = plan
-            for kind, ident in plan.ids.items():
-                self.by_id.setdefault((scene, kind, ident), plan)
+            self._add(key, plan)
 
-    def _check_scene(self, scene: str) -> None:
-        if scene not in self.scenes:
-            raise ConfigError("scene", f"unknown scene '{scene}': no scene file {C.scene_path(self.cfg, scene)}; "
+    def _check_scene(self, key: str) -> None:
+        if key.startswith(BENCHMARK + "/"):
+            return  # the benchmark spec names its unknown runs itself
+        if key not in self.scenes:
+            raise ConfigError("scene", f"unknown scene '{key}': no scene file {C.scene_path(self.cfg, key)}; "
                                        f"known scenes: {', '.join(self.scenes) or '(none)'}")
 
     def plan(self, target: str) -> Plan:
-        scene, abl = parse_target(target)
-        self._check_scene(scene)
-        if abl is not None and abl not in self.ablations():
-            raise ConfigError("ablations", f"unknown ablation '{abl}' in target '{target}'; ablations: "
+        key, variant = parse_target(target)
+        self._check_scene(key)
+        bench = key.startswith(BENCHMARK + "/")
+        if not bench and variant is not None and variant not in self.ablations():
+            raise ConfigError("ablations", f"unknown ablation '{variant}' in target '{target}'; ablations: "
                                            f"{', '.join(self.ablations()) or '(none configured)'}")
-        self._load(scene)
+        self._load(key)
         if target in self.problems:
             raise self.problems[target]
+        if bench and key in self.problems:  # the benchmark run's spec itself is broken
+            raise self.problems[key]
+        if target not in self.plans:
+            known = sorted(t for t in self.plans if t == key or t.startswith(key + "/"))
+            raise ConfigError("target", f"unknown target '{target}'; known for {key}: {', '.join(known)}")
         return self.plans[target]
 
     def for_id(self, scene: str, kind: str, ident: str) -> Plan:

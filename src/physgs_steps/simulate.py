@@ -17,7 +17,9 @@ simulate with :mod:`physgs_steps.mpm` under ``cfg["sim"]`` (sim.schema.yaml) and
   ``driver``) for every frame, frames held at rest stored once, and the physical
   plausibility figures accumulated on the way (:mod:`physgs_steps.physical`).  An unstable
   run stops with a :class:`SimulationError` naming the instance, its material and
-  parameters and what to change; no output is written.
+  parameters and what to change; no output is written. With ``sim.on_unstable: keep`` it
+  writes the stable frames instead (fewer than ``n_frames``) with ``stats.stable = false`` and
+  the failure message (the benchmark's expected failures).
 
 Both detect rest (``sim.rest``, :mod:`physgs_steps.mpm.rest`): once everything has stopped
 moving and no force or enforced motion acts, no more substeps until the dynamics' schedule
@@ -270,13 +272,21 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
             res = run_frames(solver, n_frames, stepper, th, on_frame, log, stage="final_sim", rest=rest,
                              on_hold=on_hold)
             if not res.stable:
-                raise SimulationError(res.message)
+                if cfg["sim"].get("on_unstable", "error") != "keep" or res.frames_done < 1:
+                    raise SimulationError(res.message)
+                # sim.on_unstable: keep -> the stable frames stay, the failure goes into the stats
+                writer.truncate(res.frames_done)
+                times = times[: res.frames_done]
+                log.warning("final_sim unstable after frame %d: keeping frames 0..%d (sim.on_unstable: keep)",
+                            res.last_stable_frame, res.last_stable_frame)
             stats = _stats(res, solver, {"n_frames": n_frames, "n_stored": len(rows), "rows_stored": writer.rows,
+                                         "frames_written": res.frames_done,
                                          "write_seconds": round(res.callback_seconds, 3)})
             writer.finish({"stats": stats, "params": params, "sim_config": _sim_config(cfg, solver, stepper),
                            "physical": figures.result(times)})
-    log.info("final_sim: %d frames (%d held at rest, %d rows stored), %d substeps in %.1f s (+%.1f s first substep, "
-             "%.1f s writing) -> %s", n_frames, res.held_frames, writer.rows, stats["substeps_total"], res.step_seconds,
-             res.first_substep_seconds, res.callback_seconds, outputs["frames"])
-    return {"substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
+    log.info("final_sim: %d frames%s (%d held at rest, %d rows stored), %d substeps in %.1f s (+%.1f s first substep, "
+             "%.1f s writing) -> %s", res.frames_done, "" if res.stable else " (UNSTABLE, kept)", res.held_frames,
+             writer.rows, stats["substeps_total"], res.step_seconds, res.first_substep_seconds, res.callback_seconds,
+             outputs["frames"])
+    return {"stable": res.stable, "substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
             "held_frames": res.held_frames, "particle_substeps_per_second": stats["particle_substeps_per_second"]}
