@@ -46,13 +46,10 @@ def run_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def finished(run_dir):
-    # the GPU chain runs in the warm stage worker (worker.py), as on a GPU machine; the run stops it
-    env = dict(os.environ, PHYSGS_WORKER="1", PHYSGS_WORKER_DIR=str(run_dir / ".worker"))
-    out = smk(run_dir, "--cores", "2", "results/bear/stage_report.tsv", "--configfile", str(TINY), env=env)
-    assert "in the warm worker" in out and "stopped the warm stage worker" in out, out[-3000:]
-    assert not list((run_dir / ".worker").glob("*.sock"))
-    return run_dir
+def finished(tiny_bear_run):
+    # conftest.py: the tiny bear through results/bear/stage_report.tsv, the GPU chain in the
+    # warm stage worker (shared with test_slurm.py, which compares its SLURM run with it)
+    return tiny_bear_run
 
 
 def test_dry_run_lists_every_stage(run_dir):
