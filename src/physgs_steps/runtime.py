@@ -270,6 +270,17 @@ def _json_default(o: Any) -> Any:
 StageFn = Callable[[dict, dict, dict, logging.Logger], dict]
 
 
+def _release_cuda_cache() -> None:
+    """Give torch's cached CUDA blocks back after a stage (BGDO's pseudo steps reserve GBs at
+    300k particles; the next stage in the same process, e.g. render, must not stack on them)."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return
+    with contextlib.suppress(Exception):
+        if torch.cuda.is_available() and torch.cuda.is_initialized():
+            torch.cuda.empty_cache()
+
+
 def cuda_start_seconds(torch) -> float:
     """Seconds of this process's first CUDA call through ``torch`` (driver, context, caching
     allocator, one kernel), 0.0 when torch had already started CUDA here.  Stages call it before
@@ -320,6 +331,7 @@ def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, lo
         exc.physgs_crash = True  # not a PhysGSError: the warm worker (worker.py) does not serve on
         raise exc from None
     summary.setdefault("seconds", round(time.perf_counter() - t0, 3))
+    _release_cuda_cache()
     if import_seconds is not None:
         summary.setdefault("import_seconds", import_seconds)
     summary.setdefault("peak_rss_mb", round(peak_rss_mb(), 1))
