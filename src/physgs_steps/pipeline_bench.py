@@ -412,6 +412,21 @@ def table(result: dict) -> str:
         slow = sorted((j for j in r["jobs"] if j["seconds"] is not None), key=lambda j: -j["seconds"])[:3]
         lines.append(f"| {r['structure']} | {r['temperature']} | {r['total_seconds']:.2f} | {r['substep_seconds']} | "
                      f"{r['peak_gpu_mib']} | " + ", ".join(f"{j['stage']} {j['seconds']:.2f}" for j in slow) + " |")
+    for r in result["runs"]:
+        if not any(j.get("breakdown") for j in r["jobs"]):
+            continue
+        lines += ["", f"Fixed costs per job, {r['structure']} {r['temperature']} (seconds; `t_*`: the stage's own "
+                      "timings, e.g. t_cuda_start = its first CUDA call, t_first_substep = kernel loading)", "",
+                  "| job | seconds | import | peak GPU (MiB) | breakdown |", "|---|---|---|---|---|"]
+        for j in r["jobs"]:
+            b = dict(j.get("breakdown") or {})
+            imp = j.get("import_seconds", b.pop("import_seconds", None))
+            b.pop("seconds", None)
+            parts = ", ".join(f"{k}={v}" for k, v in b.items() if v is not None)
+            lines.append(f"| {j['stage']}{' ' + j['step'] if j.get('step') else ''} | {j['seconds']} | {imp} | "
+                         f"{j.get('peak_gpu_mib')} | {parts} |")
+        if r.get("idle_worker"):
+            lines += ["", f"Idle worker after the run: {json.dumps(r['idle_worker'], default=str)}"]
     return "\n".join(lines)
 
 
