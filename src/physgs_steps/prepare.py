@@ -418,10 +418,15 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     tcfg = transform_config(scene_cfg)
     rcfg = region_config(scene_cfg)
     pcfg = prepare_config(cfg)
+    import time
+
+    t0 = time.perf_counter()
     scene, source = load_source(inputs, scene_cfg, log)
+    t1 = time.perf_counter()
     n_input = scene.n
     bounds_src_in = _bounds(scene.means)
     sim, tf, info = normalise_scene(scene, tcfg, pcfg, source, log, rcfg["box"])
+    t2 = time.perf_counter()
     dropped = info["dropped"]
     simulated = ~np.asarray(sim.extras.get("static", np.zeros(sim.n, bool)), bool)
     bounds_sim = _bounds(sim.means[simulated])
@@ -436,11 +441,13 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     })
     save_gaussians(sim, outputs["scene"])
     write_json(outputs["transform"], record)
+    timings = {"load": round(t1 - t0, 3), "normalise": round(t2 - t1, 3), "write": round(time.perf_counter() - t2, 3)}
     log.info("normalised %s: kept %d of %d gaussians (dropped %s; %d of them static surroundings outside "
              "region.box), scale %.6g, rotation %s, simulated bounds %s..%s", source, sim.n, n_input, dropped,
              info["n_static"], tf.scale, np.round(tf.R, 6).tolist(), _fmt(bounds_sim["min"]), _fmt(bounds_sim["max"]))
     log.info("wrote %s and %s", outputs["scene"], outputs["transform"])
-    return {"n_input": n_input, "n_kept": sim.n, "dropped": dropped, "n_static": info["n_static"], "scale": tf.scale}
+    return {"n_input": n_input, "n_kept": sim.n, "dropped": dropped, "n_static": info["n_static"], "scale": tf.scale,
+            "timings": timings}
 
 
 def _bounds(points: np.ndarray) -> dict:
