@@ -256,10 +256,15 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
                            log, t_start, scene_size(transform), timings)
 
 
-def frames_per_call(batch: int, batch_gaussians: int, n_gaussians: int) -> int:
-    """gsplat frames per call: ``batch`` at most, and at most ``batch_gaussians`` gaussians summed
-    over the call's frames (at least one frame): the bound on the renderer's GPU memory."""
-    return max(1, min(int(batch), int(batch_gaussians) // max(int(n_gaussians), 1)))
+def frames_per_call(batch: int, batch_gaussians: int, n_gaussians: int, batch_pixels: int | None = None,
+                    pixels: int = 1) -> int:
+    """gsplat frames per call: ``batch`` at most, at most ``batch_gaussians`` gaussians and
+    ``batch_pixels`` pixels summed over the call's frames (at least one frame): the bound on the
+    renderer's GPU memory (per-gaussian projections and tile lists, per-pixel images)."""
+    n = min(int(batch), int(batch_gaussians) // max(int(n_gaussians), 1))
+    if batch_pixels is not None:
+        n = min(n, int(batch_pixels) // max(int(pixels), 1))
+    return max(1, n)
 
 
 def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, carrier, frames, dev, log,
@@ -296,10 +301,12 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     frame_dir = None
     if rcfg["png_frames"]:
         frame_dir = FrameDir(outputs.get("frames") or Path(outputs["video"]).parent / "frames")
-    batch = frames_per_call(rcfg["batch"], rcfg["batch_gaussians"], scene.n) if backend == "gsplat" else 1
+    batch = frames_per_call(rcfg["batch"], rcfg["batch_gaussians"], scene.n, rcfg["batch_pixels"],
+                            width * height) if backend == "gsplat" else 1
     if backend == "gsplat" and batch < int(rcfg["batch"]):
-        log.info("%d frames per gsplat call (render.batch %d, capped by render.batch_gaussians %d at %d gaussians)",
-                 batch, int(rcfg["batch"]), int(rcfg["batch_gaussians"]), scene.n)
+        log.info("%d frames per gsplat call (render.batch %d, capped by render.batch_gaussians %d at %d gaussians "
+                 "and render.batch_pixels %d at %dx%d)", batch, int(rcfg["batch"]), int(rcfg["batch_gaussians"]),
+                 scene.n, int(rcfg["batch_pixels"]), width, height)
     t_render = t_deform = t_read = 0.0
     next_log = 0.1
     prev = None      # (stored row, gaussians, camera) of the previous frame
