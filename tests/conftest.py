@@ -4,6 +4,7 @@ session: it is the suite's most expensive artifact after the benchmark)."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -49,8 +50,8 @@ def make_run_dir(path: Path) -> Path:
 def tiny_bear_run(tmp_path_factory) -> Path:
     """``snakemake --cores 2 results/bear/stage_report.tsv --configfile tests/slurm/config.yaml``
     in a scratch folder, once per session: every stage of the tiny bear, its metrics and stage
-    report. The GPU chain runs in the warm stage worker (worker.py), as on a GPU machine; the
-    run stops it. Its results/ are read, never written, by test_workflow.py (outputs, what a
+    report. Its stages run in the warm stage worker (worker.py), as on a GPU machine; the
+    worker outlives the run, so the fixture stops it. Its results/ are read, never written, by test_workflow.py (outputs, what a
     config change re-runs: dry runs) and test_slurm.py (the local run that the SLURM run must
     match)."""
     d = make_run_dir(tmp_path_factory.mktemp("tiny_bear"))
@@ -60,6 +61,14 @@ def tiny_bear_run(tmp_path_factory) -> Path:
                        stdin=subprocess.DEVNULL, env=env)
     out = p.stdout + p.stderr
     assert p.returncode == 0, f"the tiny bear run failed:\n{out[-6000:]}"
-    assert "in the warm worker" in out and "stopped the warm stage worker" in out, out[-3000:]
-    assert not list((d / ".worker").glob("*.sock"))
+    assert "in the warm worker" in out and "the warm stage worker (pid" in out, out[-3000:]
+    assert re.search(r"\] (prepare|cluster|fill): .* in the warm worker", out), out[-3000:]
+    # the worker outlives the run (worker.idle_seconds): it served every job; stop it here
+    from physgs_steps import worker as W
+
+    socks = list((d / ".worker").glob("*.sock"))
+    assert len(socks) == 1
+    info = W.ping(socks[0])
+    assert info and info["jobs"] >= 8 and info["rss_mb"] > 0, info
+    assert W.shutdown(socks[0]) and not socks[0].exists()
     return d

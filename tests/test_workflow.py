@@ -47,7 +47,7 @@ def run_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def finished(tiny_bear_run):
-    # conftest.py: the tiny bear through results/bear/stage_report.tsv, the GPU chain in the
+    # conftest.py: the tiny bear through results/bear/stage_report.tsv, every stage in the
     # warm stage worker (shared with test_slurm.py, which compares its SLURM run with it)
     return tiny_bear_run
 
