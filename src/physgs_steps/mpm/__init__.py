@@ -30,10 +30,17 @@ the constitutive models alone.  ``Material.from_params(entry)`` reads a params.j
 ``preset("jelly")`` a knowledge-base material.  CPU runs are bitwise reproducible; on CUDA the
 grid transfer uses float atomics, so runs agree to float tolerance.
 
+Rigid and static instances: ``Material(..., rigid=True)`` moves as one rigid body coupled
+two-way to the grid (rigid.py); ``rigid=True, fixed=True`` is static geometry, a level-set
+collider that does not enter the MPM (colliders.py), as is any ``StaticGeometry(points, ...)``
+given to ``MPMSolver(static=[...])``.
+
 Modules: materials (models), solver (MPMSolver), kernels (Taichi code), dynamics (scene forces
-and colliders), timestep (CFL substeps), stability (checks and messages), runner (frame
-loop), backend (Taichi start-up).
+and colliders), colliders (static geometry, where boundaries sit), rigid (rigid bodies),
+timestep (CFL substeps), stability (checks and messages), runner (frame loop), backend
+(Taichi start-up).
 """
+from .colliders import StaticGeometry
 from .dynamics import Dynamics
 from .materials import Material, preset
 from .runner import RunResult, run_frames
@@ -41,4 +48,5 @@ from .solver import MPMSolver
 from .stability import Thresholds
 from .timestep import TimeStepper
 
-__all__ = ["Dynamics", "Material", "MPMSolver", "RunResult", "Thresholds", "TimeStepper", "preset", "run_frames"]
+__all__ = ["Dynamics", "Material", "MPMSolver", "RunResult", "StaticGeometry", "Thresholds", "TimeStepper", "preset",
+           "run_frames"]

@@ -42,7 +42,7 @@ import taichi as ti
 
 from . import materials as M
 
-BOUND = 3  # domain wall thickness in grid nodes (CONTRACTS.md)
+from .colliders import GHOST_BAND, TOUCH
 
 vec3 = ti.types.vector(3, ti.f32)
 mat3 = ti.types.matrix(3, 3, ti.f32)
@@ -51,7 +51,10 @@ M1 = ti.types.ndarray(dtype=mat3, ndim=1)
 S1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 S2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
+V3 = ti.types.ndarray(dtype=vec3, ndim=3)
 V4 = ti.types.ndarray(dtype=vec3, ndim=4)
+S3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
+I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
 S4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 
 
@@ -65,10 +68,194 @@ class Spec(NamedTuple):
     """What a kernel is specialised to (hashable; the build cache key)."""
 
     combos: tuple        # ((elasticity name, plasticity name), ...)
-    boundary: str        # slip | sticky
+    boundary: str        # slip | sticky (domain walls)
     damping: bool        # whether grid damping is applied
     counts: tuple        # (surface, cuboid, acceleration, translation, rotation) dynamics rows
+    static: bool         # whether there are level-set colliders (static geometry)
     private_grid: bool   # CPU: one grid per chunk of particles, no atomics; CUDA: one grid, atomics
+
+
+@ti.func
+def _box_sdf(xp, centre, half):
+    """Signed distance (positive outside) of point ``xp`` to the box centre +- half."""
+    q = ti.abs(xp - centre) - half
+    return ti.max(q, 0.0).norm() + ti.min(q.max(), 0.0)
+
+
+@ti.func
+def _box_normal(xp, centre, half):
+    """Outward unit normal of the box at ``xp`` (the gradient of :func:`_box_sdf`)."""
+    rel = xp - centre
+    q = ti.abs(rel) - half
+    sgn = ti.Vector([1.0 if rel[a] >= 0.0 else -1.0 for a in ti.static(range(3))], dt=ti.f32)
+    n = ti.Vector.zero(ti.f32, 3)
+    if q.max() > 0.0:
+        n = ti.max(q, 0.0) * sgn
+        n /= ti.max(n.norm(), 1e-20)
+    else:
+        a = 0
+        if q[1] > q[a]:
+            a = 1
+        if q[2] > q[a]:
+            a = 2
+        n[a] = sgn[a]
+    return n
+
+
+def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespace:
+    """ti.funcs evaluating the boundaries (colliders.py, "Boundary placement").
+
+    Slots, in order: the 6 domain walls, the surface colliders, the level set (if ``static``)
+    (obstacles: material stays on their free side), then the cuboids (holding regions).
+    ``slot(k, x, t, dx, wall, dyn, lvl_phi, lvl_id, lvl_rows)`` -> (active, phi, n, v_c, kind,
+    friction) at a position x (m); the level set is interpolated trilinearly from its nodes.
+    ``node_slot`` is the same at grid node I (level set: the node's own value, central
+    differences for n).
+    """
+    n_surf, n_cub = counts[0], counts[1]
+    r_cub = n_surf
+    n_obst = 6 + n_surf + (1 if static else 0)
+    n_slots = n_obst + n_cub
+    wall_kind = 0.0 if boundary == "sticky" else 2.0  # slip walls remove only the outward velocity
+
+    @ti.func
+    def _vrow(dyn: ti.template(), r, c):
+        return ti.Vector([dyn[r, c], dyn[r, c + 1], dyn[r, c + 2]], dt=ti.f32)
+
+    @ti.func
+    def _lvl_at(xp, dx, lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template()):
+        G = lvl_phi.shape[0]
+        g = xp / dx
+        base = ti.min(ti.max(ti.cast(ti.floor(g), ti.i32), 0), G - 2)
+        fr = ti.min(ti.max(g - ti.cast(base, ti.f32), 0.0), 1.0)
+        phi = 0.0
+        grad = ti.Vector.zero(ti.f32, 3)
+        for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
+            v = lvl_phi[base[0] + i, base[1] + j, base[2] + k]
+            wx = fr[0] if i else 1.0 - fr[0]
+            wy = fr[1] if j else 1.0 - fr[1]
+            wz = fr[2] if k else 1.0 - fr[2]
+            phi += wx * wy * wz * v
+            grad += v * ti.Vector([(1.0 if i else -1.0) * wy * wz, (1.0 if j else -1.0) * wx * wz,
+                                   (1.0 if k else -1.0) * wx * wy], dt=ti.f32)
+        near = ti.min(ti.max(ti.cast(ti.round(g), ti.i32), 0), G - 1)
+        o = lvl_id[near[0], near[1], near[2]]
+        return phi, grad / ti.max(grad.norm(), 1e-20), lvl_rows[o, 0], lvl_rows[o, 1]
+
+    @ti.func
+    def _lvl_node(I, lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template()):
+        G = lvl_phi.shape[0]
+        grad = ti.Vector.zero(ti.f32, 3)
+        for a in ti.static(range(3)):
+            e = ti.Vector.unit(3, a, ti.i32)
+            hi = ti.min(I + e, G - 1)
+            lo = ti.max(I - e, 0)
+            grad[a] = lvl_phi[hi[0], hi[1], hi[2]] - lvl_phi[lo[0], lo[1], lo[2]]
+        o = lvl_id[I[0], I[1], I[2]]
+        return lvl_phi[I[0], I[1], I[2]], grad / ti.max(grad.norm(), 1e-20), lvl_rows[o, 0], lvl_rows[o, 1]
+
+    @ti.func
+    def _slot(k, xp, I, at_node: ti.template(), t, dx, L, wall, dyn: ti.template(),
+              lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template()):
+        """Slot ``k`` (a runtime index: one copy of the code serves all slots)."""
+        active = 1
+        phi = 1.0e30
+        n = ti.Vector([0.0, 0.0, 1.0], dt=ti.f32)
+        vc = ti.Vector.zero(ti.f32, 3)
+        kind = 0.0
+        fric = 0.0
+        if k < 6:  # domain wall: axis k // 2, lower (even k) or upper side
+            a = k // 2
+            sgn = 1.0 if k % 2 == 0 else -1.0
+            n = ti.Vector([1.0 if a == 0 else 0.0, 1.0 if a == 1 else 0.0, 1.0 if a == 2 else 0.0], dt=ti.f32) * sgn
+            xa = xp[0] if a == 0 else (xp[1] if a == 1 else xp[2])
+            phi = xa - wall if k % 2 == 0 else L - wall - xa
+            kind = wall_kind
+        elif k < 6 + n_surf:
+            r = k - 6
+            active = 1 if (t >= dyn[r, 8] and t < dyn[r, 9]) else 0
+            n = _vrow(dyn, r, 3)
+            phi = (xp - _vrow(dyn, r, 0)).dot(n)
+            kind = dyn[r, 6]
+            fric = dyn[r, 7]
+        elif k < n_obst:
+            if ti.static(static):
+                if ti.static(at_node):
+                    phi, n, kind, fric = _lvl_node(I, lvl_phi, lvl_id, lvl_rows)
+                else:
+                    phi, n, kind, fric = _lvl_at(xp, dx, lvl_phi, lvl_id, lvl_rows)
+        else:  # cuboid (holding region, sticky)
+            r = r_cub + k - n_obst
+            active = 1 if (t >= dyn[r, 9] and t < dyn[r, 10]) else 0
+            vc = _vrow(dyn, r, 6)
+            centre = _vrow(dyn, r, 0) + vc * (t - dyn[r, 9])
+            half = _vrow(dyn, r, 3)
+            phi = _box_sdf(xp, centre, half)
+            n = _box_normal(xp, centre, half)
+        return active, phi, n, vc, kind, fric
+
+    @ti.func
+    def node_rule(gv, n, vc, kind, fric):
+        """The plain node condition: sticky -> v_c; slip -> no normal relative velocity;
+        separate -> no inward normal relative velocity; friction on the tangential part."""
+        out = vc
+        if kind >= 0.5:
+            u = gv - vc
+            un = u.dot(n)
+            if kind < 1.5 or un < 0.0:
+                u -= un * n
+            if un < 0.0:
+                vt = u.norm()
+                if vt > 1e-20:
+                    u *= ti.max(0.0, vt + un * fric) / vt
+            out = vc + u
+        return out
+
+    @ti.func
+    def ghost(xn, gv, phi, n, vc, kind, fric, dx, grid_v: ti.template(), grid_m: ti.template()):
+        """The node velocity behind a boundary (phi < 0): linear extrapolation across the
+        surface from the mirror point's velocity (colliders.py), else the plain node rule."""
+        G = grid_m.shape[1]
+        out = gv
+        done = 0
+        if phi > -GHOST_BAND * dx:
+            dm = dx * (ti.abs(n[0]) + ti.abs(n[1]) + ti.abs(n[2]))  # the mirror's trilinear cube lies in front
+            xm = xn + (dm - phi) * n
+            g = xm / dx
+            base = ti.cast(ti.floor(g), ti.i32)
+            fr = g - ti.cast(base, ti.f32)
+            acc = ti.Vector.zero(ti.f32, 3)
+            wsum = 0.0
+            for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
+                node = base + ti.Vector([i, j, k])
+                if node.min() >= 0 and node.max() < G:
+                    if grid_m[0, node[0], node[1], node[2]] > 0.0:
+                        w = (fr[0] if i else 1.0 - fr[0]) * (fr[1] if j else 1.0 - fr[1]) * (fr[2] if k else 1.0 - fr[2])
+                        acc += w * grid_v[0, node[0], node[1], node[2]]
+                        wsum += w
+            if wsum > 1e-6:
+                vm = acc / wsum
+                u = vm - vc
+                q = phi / dm
+                un = u.dot(n)
+                if kind < 0.5:
+                    out = vc + q * u
+                elif kind < 1.5 or un < 0.0:
+                    ut = u - un * n
+                    ts = ut
+                    if un < 0.0:
+                        vt = ut.norm()
+                        if vt > 1e-20:
+                            ts = ut * (ti.max(0.0, vt + un * fric) / vt)
+                    out = vc + ts + q * (ut - ts) + q * un * n
+                else:
+                    out = vm
+                done = 1
+        if done == 0:
+            out = node_rule(gv, n, vc, kind, fric)
+        return out
+
+    return SimpleNamespace(slot=_slot, node_rule=node_rule, ghost=ghost, n_obst=n_obst, n_slots=n_slots)
 
 
 @functools.lru_cache(maxsize=None)
@@ -77,16 +264,17 @@ def build(spec: Spec) -> SimpleNamespace:
     pairs = [(M.ELASTICITY[e], M.PLASTICITY[p]) for e, p in spec.combos]
     updates = [_make_update(el, pl) for el, pl in pairs]
     n_combo = len(pairs)
+    rigid_cid = spec.combos.index(M.RIGID_MODELS) if M.RIGID_MODELS in spec.combos else -1
     n_surf, n_cub, n_acc, n_tra, n_rot = spec.counts
-    r_cub = n_surf
-    r_acc = r_cub + n_cub
+    r_acc = n_surf + n_cub
     r_tra = r_acc + n_acc
     r_rot = r_tra + n_tra
     has_actions = (n_acc + n_tra + n_rot) > 0
-    sticky = spec.boundary == "sticky"
     damping = spec.damping
     private_grid = spec.private_grid
     two_pi = 2.0 * math.pi
+    col = collider_funcs(spec.counts, spec.boundary, spec.static)
+    n_obst, n_slots = col.n_obst, col.n_slots
 
     @ti.func
     def _vrow(dyn: ti.template(), r, c):
@@ -101,6 +289,30 @@ def build(spec: Spec) -> SimpleNamespace:
         fx = xp * inv_dx - ti.cast(base, ti.f32)
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
         return base, fx, w
+
+    @ti.func
+    def _is_rigid(m, mcombo: ti.template()):
+        r = 0
+        if ti.static(rigid_cid >= 0):
+            if ti.static(n_combo == 1):
+                r = 1
+            elif mcombo[m] == rigid_cid:
+                r = 1
+        return r
+
+    @ti.func
+    def _held(xp, t, dyn: ti.template()):
+        """(1, velocity) when xp lies inside an active cuboid (a holding region), else (0, 0)."""
+        held = 0
+        vel = ti.Vector.zero(ti.f32, 3)
+        for c in ti.static(range(n_cub)):
+            r = n_surf + c
+            if t >= dyn[r, 9] and t < dyn[r, 10]:
+                v_c = _vrow(dyn, r, 6)
+                if _box_sdf(xp, _vrow(dyn, r, 0) + v_c * (t - dyn[r, 9]), _vrow(dyn, r, 3)) < 0.0:
+                    held = 1
+                    vel = v_c
+        return held, vel
 
     @ti.func
     def _particle_actions(b, xp, vp, t, dt, dyn: ti.template()):
@@ -121,144 +333,172 @@ def build(spec: Spec) -> SimpleNamespace:
         return vp
 
     @ti.func
-    def _grid_actions(I, gv, dx, t, dyn: ti.template()):
-        xn = ti.cast(I, ti.f32) * dx
-        for s in ti.static(range(n_surf)):
-            r = s
-            if t >= dyn[r, 8] and t < dyn[r, 9]:
-                n = _vrow(dyn, r, 3)
-                if (xn - _vrow(dyn, r, 0)).dot(n) < 0.0:
-                    kind = dyn[r, 6]
-                    if kind < 0.5:
-                        gv = ti.Vector.zero(ti.f32, 3)
-                    else:
-                        vn = gv.dot(n)
-                        if kind < 1.5 or vn < 0.0:
-                            gv -= vn * n
-                        if vn < 0.0:
-                            vt = gv.norm()
-                            if vt > 1e-20:
-                                gv *= ti.max(0.0, vt + vn * dyn[r, 7]) / vt
-        for c in ti.static(range(n_cub)):
-            r = r_cub + c
-            if t >= dyn[r, 9] and t < dyn[r, 10]:
-                vel = _vrow(dyn, r, 6)
-                centre = _vrow(dyn, r, 0) + vel * (t - dyn[r, 9])
-                d = ti.abs(xn - centre)
-                if d[0] < dyn[r, 3] and d[1] < dyn[r, 4] and d[2] < dyn[r, 5]:
-                    gv = vel
-        return gv
+    def _touching(xp, t, dx, L, wall, dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
+                  lvl_rows: ti.template()):
+        """1 when the particle at xp touches (or is behind) an active obstacle."""
+        touch = 0
+        for s in range(n_obst):
+            active, phi, n, vc, kind, fric = col.slot(s, xp, ti.Vector([0, 0, 0]), False, t, dx, L, wall, dyn,
+                                                      lvl_phi, lvl_id, lvl_rows)
+            if active == 1 and phi < TOUCH * dx:
+                touch = 1
+        return touch
 
     @ti.func
     def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
-                      p_vol: ti.template(), p_mass: ti.template(), act_bits: ti.template(), grid_v: ti.template(),
-                      grid_m: ti.template(), dyn: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G):
+                      p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                      act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
+                      dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template(),
+                      err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
         xp = x[p]
-        base, fx, w = _stencil(xp, inv_dx, G, err)
-        vp = v[p]
-        if ti.static(has_actions):
-            b = act_bits[p]
-            if b != 0:
-                vp = _particle_actions(b, xp, vp, t, dt, dyn)
-        mass = p_mass[p]
-        affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
-        mv = mass * vp
-        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            dpos = (ti.cast(offset, ti.f32) - fx) * dx
-            weight = w[i][0] * w[j][1] * w[k][2]
-            node = base + offset
-            if ti.static(private_grid):
-                # this chunk's own grid: a plain read-modify-write, no atomic needed
-                grid_v[c, node[0], node[1], node[2]] = grid_v[c, node[0], node[1], node[2]] + weight * (mv + affine @ dpos)
-                grid_m[c, node[0], node[1], node[2]] = grid_m[c, node[0], node[1], node[2]] + weight * mass
-            else:
-                grid_v[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
-                grid_m[0, node[0], node[1], node[2]] += weight * mass
+        held = 0
+        rigid = _is_rigid(mat[p], mcombo)
+        if ti.static(n_cub > 0):
+            if rigid == 0:
+                held, _ = _held(xp, t, dyn)
+        touch = 0
+        if rigid == 0 and held == 0:
+            touch = _touching(xp, t, dx, L, wall, dyn, lvl_phi, lvl_id, lvl_rows)
+        if True:
+            base, fx, w = _stencil(xp, inv_dx, G, err)
+            vp = v[p]
+            if ti.static(has_actions):
+                b = act_bits[p]
+                if b != 0:
+                    vp = _particle_actions(b, xp, vp, t, dt, dyn)
+            mass = p_mass[p]
+            affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
+            mv = mass * vp
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                offset = ti.Vector([i, j, k])
+                dpos = (ti.cast(offset, ti.f32) - fx) * dx
+                weight = w[i][0] * w[j][1] * w[k][2]
+                node = base + offset
+                if ti.static(private_grid):
+                    # this chunk's own grid: a plain read-modify-write, no atomic needed
+                    grid_v[c, node[0], node[1], node[2]] = grid_v[c, node[0], node[1], node[2]] + weight * (mv + affine @ dpos)
+                    grid_m[c, node[0], node[1], node[2]] = grid_m[c, node[0], node[1], node[2]] + weight * mass
+                else:
+                    grid_v[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
+                    grid_m[0, node[0], node[1], node[2]] += weight * mass
+                if touch == 1:
+                    grid_c[c, node[0], node[1], node[2]] = 1.0
 
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
-                grid_v: V4, grid_m: S4, mparams: S2, mcombo: I1, dyn: S2, err: I1,
-                dt: ti.f32, t: ti.f32, dx: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32):
+                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3,
+                lvl_rows: S2, err: I1, dt: ti.f32, t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32,
+                gz: ti.f32, damp: ti.f32):
         inv_dx = 1.0 / dx
         n_chunks = grid_m.shape[0]
         G = grid_m.shape[1]
+        L = dx * ti.cast(G, ti.f32)
         P = x.shape[0]
         for I in ti.grouped(grid_m):
             grid_v[I] = ti.Vector.zero(ti.f32, 3)
             grid_m[I] = 0.0
+            grid_c[I] = 0.0
         # P2G
         if ti.static(private_grid):
             for c in range(n_chunks):  # parallel over chunks, serial inside a chunk
                 for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-                    _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, act_bits, grid_v, grid_m, dyn, err,
-                                  dt, t, dx, inv_dx, G)
+                    _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                                  dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
         else:
             for p in range(P):
-                _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, act_bits, grid_v, grid_m, dyn, err,
-                              dt, t, dx, inv_dx, G)
-        # grid update (the chunks' grids are summed into chunk 0)
+                _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c, dyn,
+                              lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+        # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
         for i, j, k in ti.ndrange(G, G, G):
             m = grid_m[0, i, j, k]
             mom = grid_v[0, i, j, k]
+            touch = grid_c[0, i, j, k]
             if ti.static(private_grid):
                 for c in range(1, n_chunks):
                     m += grid_m[c, i, j, k]
                     mom += grid_v[c, i, j, k]
+                    touch += grid_c[c, i, j, k]
+            grid_c[0, i, j, k] = touch
+            gv = ti.Vector.zero(ti.f32, 3)
             if m > 0.0:
-                I = ti.Vector([i, j, k])
-                gv = mom / m
-                gv += dt * ti.Vector([gx, gy, gz], dt=ti.f32)
+                gv = mom / m + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
                 if ti.static(damping):
                     gv *= damp
-                if ti.static(n_surf + n_cub > 0):
-                    gv = _grid_actions(I, gv, dx, t, dyn)
-                for d in ti.static(range(3)):
-                    if I[d] < BOUND:
-                        if ti.static(sticky):
-                            gv = ti.Vector.zero(ti.f32, 3)
-                        elif gv[d] < 0.0:
-                            gv[d] = 0.0
-                    if I[d] > G - BOUND:
-                        if ti.static(sticky):
-                            gv = ti.Vector.zero(ti.f32, 3)
-                        elif gv[d] > 0.0:
-                            gv[d] = 0.0
-                grid_v[0, i, j, k] = gv
-            else:
-                grid_v[0, i, j, k] = ti.Vector.zero(ti.f32, 3)
-        # G2P, F update, return map, stress of the new F
+            grid_m[0, i, j, k] = m
+            grid_v[0, i, j, k] = gv
+        # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
+        for i, j, k in ti.ndrange(G, G, G):
+            gv = grid_v[0, i, j, k]
+            if grid_m[0, i, j, k] > 0.0:
+                I = ti.Vector([i, j, k])
+                xn = ti.cast(I, ti.f32) * dx
+                engaged = grid_c[0, i, j, k] > 0.0
+                for s in range(n_slots):
+                    active, phi, n, vc, kind, fric = col.slot(s, xn, I, True, t, dx, L, wall, dyn, lvl_phi, lvl_id,
+                                                              lvl_rows)
+                    # obstacles act where material touches them; cuboids (holding regions) always
+                    if active == 1 and phi < 0.0 and (engaged or s >= n_obst):
+                        gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, grid_v, grid_m)
+            grid_b[i, j, k] = gv
+        # G2P, F update, return map, stress of the new F; boundaries on deformable particles
         for p in x:
             xp = x[p]
-            base, fx, w = _stencil(xp, inv_dx, G, err)
-            new_v = ti.Vector.zero(ti.f32, 3)
-            new_C = ti.Matrix.zero(ti.f32, 3, 3)
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                offset = ti.Vector([i, j, k])
-                dpos = (ti.cast(offset, ti.f32) - fx) * dx
-                node = base + offset
-                g_v = grid_v[0, node[0], node[1], node[2]]
-                weight = w[i][0] * w[j][1] * w[k][2]
-                new_v += weight * g_v
-                new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
-            v[p] = new_v
-            C[p] = new_C
-            x[p] = xp + dt * new_v
-            F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
             m = mat[p]
-            q = _qrow(mparams, m)
-            cid = 0
-            if ti.static(n_combo > 1):
-                cid = mcombo[m]
-            F_new = F_trial
-            tau_new = ti.Matrix.zero(ti.f32, 3, 3)
-            for ci in ti.static(range(n_combo)):
-                if cid == ci:
-                    F_new, tau_new = updates[ci](F_trial, q)
-            F[p] = F_new
-            tau[p] = tau_new
+            rigid = _is_rigid(m, mcombo)
+            held = 0
+            hv = ti.Vector.zero(ti.f32, 3)
+            if ti.static(n_cub > 0):
+                if rigid == 0:
+                    held, hv = _held(xp, t, dyn)
+            if True:
+                base, fx, w = _stencil(xp, inv_dx, G, err)
+                new_v = ti.Vector.zero(ti.f32, 3)
+                new_C = ti.Matrix.zero(ti.f32, 3, 3)
+                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                    offset = ti.Vector([i, j, k])
+                    dpos = (ti.cast(offset, ti.f32) - fx) * dx
+                    node = base + offset
+                    g_v = grid_b[node[0], node[1], node[2]]
+                    if ti.static(rigid_cid >= 0):
+                        if rigid == 1:  # rigid bodies meet the boundaries as bodies (rigid.py)
+                            g_v = grid_v[0, node[0], node[1], node[2]]
+                    weight = w[i][0] * w[j][1] * w[k][2]
+                    new_v += weight * g_v
+                    new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
+                x_new = xp + dt * new_v
+                if held == 1:
+                    # inside a cuboid: the particle stays with the cuboid, but carries the field the
+                    # ghost nodes extend into it (so stress and momentum stay continuous at the face)
+                    x_new = xp + dt * hv
+                elif rigid == 0:  # obstacles: back onto the surface, no inward velocity
+                    for s in range(n_obst):
+                        active, phi, n, vc, kind, fric = col.slot(s, x_new, ti.Vector([0, 0, 0]), False, t, dx, L,
+                                                                  wall, dyn, lvl_phi, lvl_id, lvl_rows)
+                        if active == 1 and phi < 0.0:
+                            x_new -= phi * n
+                            if kind < 0.5:
+                                new_v = vc
+                            else:
+                                un = (new_v - vc).dot(n)
+                                if un < 0.0:
+                                    new_v -= un * n
+                v[p] = new_v
+                C[p] = new_C
+                x[p] = x_new
+                F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
+                q = _qrow(mparams, m)
+                cid = 0
+                if ti.static(n_combo > 1):
+                    cid = mcombo[m]
+                F_new = F_trial
+                tau_new = ti.Matrix.zero(ti.f32, 3, 3)
+                for ci in ti.static(range(n_combo)):
+                    if cid == ci:
+                        F_new, tau_new = updates[ci](F_trial, q)
+                F[p] = F_new
+                tau[p] = tau_new
 
-    return SimpleNamespace(substep=substep, spec=spec)
+    return SimpleNamespace(substep=substep, spec=spec, colliders=col)
 
 
 @functools.lru_cache(maxsize=None)
