@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from .. import materials_kb
+from ..mpm.colliders import GHOST_BAND, TOUCH
 
 # ----------------------------------------------------------------------------- model names
 ELASTICITY = materials_kb.ELASTICITY_MODELS  # canonical names, docs/CONTRACTS.md
@@ -399,7 +400,15 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     gv = grid_mv / torch.where(has_mass, grid_m, torch.ones_like(grid_m))[:, None]
     g = torch.as_tensor(grid.gravity, dtype=dtp, device=dev)
     gv = torch.where(has_mass[:, None], gv + dt * g, torch.zeros_like(gv))
-    gv_b = _walls(gv, grid_m, uniq, G, dx, grid)
+    # a wall acts on the nodes of (deformable) particles that touch it (colliders.py)
+    phi_p = torch.stack([sgn * (x[:, a] - pos) for a, sgn, pos in _wall_planes(G, dx, grid)], -1).min(-1).values
+    touch = phi_p < TOUCH * dx
+    if rigid is not None:
+        touch = touch & ~rigid
+    engaged = torch.zeros(M, dtype=torch.bool, device=dev)
+    if bool(touch.any()):
+        engaged[inv.reshape(P, 27)[touch].reshape(-1)] = True
+    gv_b = _walls(gv, grid_m, uniq, G, dx, grid, engaged)
     gvp = gv_b[inv].reshape(P, 27, 3)
     if rigid is not None and bool(rigid.any()):
         gvp = torch.where(rigid[:, None, None], gv[inv].reshape(P, 27, 3), gvp)
@@ -419,12 +428,12 @@ def _wall_planes(G: int, dx: float, grid: GridSpec):
     return [(a, s_, m if s_ > 0 else L - m) for a in range(3) for s_ in (1.0, -1.0)]
 
 
-def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: float, grid: GridSpec) -> torch.Tensor:
+def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: float, grid: GridSpec,
+           engaged: torch.Tensor) -> torch.Tensor:
     """Domain walls on the grid velocities with the ghost treatment of
     physgs_steps.mpm.colliders (linear extrapolation from the mirror point's velocity).
-    gv  # [M, 3] velocities before the walls, gm  # [M] masses, uniq  # [M] node keys."""
-    from ..mpm.colliders import GHOST_BAND
-
+    gv  # [M, 3] velocities before the walls, gm  # [M] masses, uniq  # [M] node keys,
+    engaged  # [M] bool: nodes a particle touching a wall transfers to (only they feel walls)."""
     dev, dtp = gv.device, gv.dtype
     idx = torch.stack([uniq // (G * G), (uniq // G) % G, uniq % G], dim=-1)  # [M, 3]
     xn = idx.to(dtp) * dx
@@ -438,7 +447,7 @@ def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: f
         n = torch.zeros(3, dtype=dtp, device=dev)
         n[a] = sgn
         phi = sgn * (xn[:, a] - pos)  # [M]
-        behind = has & (phi < 0)
+        behind = has & engaged & (phi < 0)
         if not bool(behind.any()):
             continue
         # plain rule (fallback): sticky -> 0; slip walls are "separate" without friction

@@ -359,30 +359,29 @@ def build(spec: Spec) -> SimpleNamespace:
         touch = 0
         if rigid == 0 and held == 0:
             touch = _touching(xp, t, dx, L, wall, dyn, lvl_phi, lvl_id, lvl_rows)
-        if True:
-            base, fx, w = _stencil(xp, inv_dx, G, err)
-            vp = v[p]
-            if ti.static(has_actions):
-                b = act_bits[p]
-                if b != 0:
-                    vp = _particle_actions(b, xp, vp, t, dt, dyn)
-            mass = p_mass[p]
-            affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
-            mv = mass * vp
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                offset = ti.Vector([i, j, k])
-                dpos = (ti.cast(offset, ti.f32) - fx) * dx
-                weight = w[i][0] * w[j][1] * w[k][2]
-                node = base + offset
-                if ti.static(private_grid):
-                    # this chunk's own grid: a plain read-modify-write, no atomic needed
-                    grid_v[c, node[0], node[1], node[2]] = grid_v[c, node[0], node[1], node[2]] + weight * (mv + affine @ dpos)
-                    grid_m[c, node[0], node[1], node[2]] = grid_m[c, node[0], node[1], node[2]] + weight * mass
-                else:
-                    grid_v[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
-                    grid_m[0, node[0], node[1], node[2]] += weight * mass
-                if touch == 1:
-                    grid_c[c, node[0], node[1], node[2]] = 1.0
+        base, fx, w = _stencil(xp, inv_dx, G, err)
+        vp = v[p]
+        if ti.static(has_actions):
+            b = act_bits[p]
+            if b != 0:
+                vp = _particle_actions(b, xp, vp, t, dt, dyn)
+        mass = p_mass[p]
+        affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
+        mv = mass * vp
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, ti.f32) - fx) * dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            node = base + offset
+            if ti.static(private_grid):
+                # this chunk's own grid: a plain read-modify-write, no atomic needed
+                grid_v[c, node[0], node[1], node[2]] = grid_v[c, node[0], node[1], node[2]] + weight * (mv + affine @ dpos)
+                grid_m[c, node[0], node[1], node[2]] = grid_m[c, node[0], node[1], node[2]] + weight * mass
+            else:
+                grid_v[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
+                grid_m[0, node[0], node[1], node[2]] += weight * mass
+            if touch == 1:
+                grid_c[c, node[0], node[1], node[2]] = 1.0
 
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
@@ -450,53 +449,52 @@ def build(spec: Spec) -> SimpleNamespace:
             if ti.static(n_cub > 0):
                 if rigid == 0:
                     held, hv = _held(xp, t, dyn)
-            if True:
-                base, fx, w = _stencil(xp, inv_dx, G, err)
-                new_v = ti.Vector.zero(ti.f32, 3)
-                new_C = ti.Matrix.zero(ti.f32, 3, 3)
-                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                    offset = ti.Vector([i, j, k])
-                    dpos = (ti.cast(offset, ti.f32) - fx) * dx
-                    node = base + offset
-                    g_v = grid_b[node[0], node[1], node[2]]
-                    if ti.static(rigid_cid >= 0):
-                        if rigid == 1:  # rigid bodies meet the boundaries as bodies (rigid.py)
-                            g_v = grid_v[0, node[0], node[1], node[2]]
-                    weight = w[i][0] * w[j][1] * w[k][2]
-                    new_v += weight * g_v
-                    new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
-                x_new = xp + dt * new_v
-                if held == 1:
-                    # inside a cuboid: the particle stays with the cuboid, but carries the field the
-                    # ghost nodes extend into it (so stress and momentum stay continuous at the face)
-                    x_new = xp + dt * hv
-                elif rigid == 0:  # obstacles: back onto the surface, no inward velocity
-                    for s in range(n_obst):
-                        active, phi, n, vc, kind, fric = col.slot(s, x_new, ti.Vector([0, 0, 0]), False, t, dx, L,
-                                                                  wall, dyn, lvl_phi, lvl_id, lvl_rows)
-                        if active == 1 and phi < 0.0:
-                            x_new -= phi * n
-                            if kind < 0.5:
-                                new_v = vc
-                            else:
-                                un = (new_v - vc).dot(n)
-                                if un < 0.0:
-                                    new_v -= un * n
-                v[p] = new_v
-                C[p] = new_C
-                x[p] = x_new
-                F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
-                q = _qrow(mparams, m)
-                cid = 0
-                if ti.static(n_combo > 1):
-                    cid = mcombo[m]
-                F_new = F_trial
-                tau_new = ti.Matrix.zero(ti.f32, 3, 3)
-                for ci in ti.static(range(n_combo)):
-                    if cid == ci:
-                        F_new, tau_new = updates[ci](F_trial, q)
-                F[p] = F_new
-                tau[p] = tau_new
+            base, fx, w = _stencil(xp, inv_dx, G, err)
+            new_v = ti.Vector.zero(ti.f32, 3)
+            new_C = ti.Matrix.zero(ti.f32, 3, 3)
+            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                offset = ti.Vector([i, j, k])
+                dpos = (ti.cast(offset, ti.f32) - fx) * dx
+                node = base + offset
+                g_v = grid_b[node[0], node[1], node[2]]
+                if ti.static(rigid_cid >= 0):
+                    if rigid == 1:  # rigid bodies meet the boundaries as bodies (rigid.py)
+                        g_v = grid_v[0, node[0], node[1], node[2]]
+                weight = w[i][0] * w[j][1] * w[k][2]
+                new_v += weight * g_v
+                new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
+            x_new = xp + dt * new_v
+            if held == 1:
+                # inside a cuboid: the particle stays with the cuboid, but carries the field the
+                # ghost nodes extend into it (so stress and momentum stay continuous at the face)
+                x_new = xp + dt * hv
+            elif rigid == 0:  # obstacles: back onto the surface, no inward velocity
+                for s in range(n_obst):
+                    active, phi, n, vc, kind, fric = col.slot(s, x_new, ti.Vector([0, 0, 0]), False, t, dx, L,
+                                                              wall, dyn, lvl_phi, lvl_id, lvl_rows)
+                    if active == 1 and phi < 0.0:
+                        x_new -= phi * n
+                        if kind < 0.5:
+                            new_v = vc
+                        else:
+                            un = (new_v - vc).dot(n)
+                            if un < 0.0:
+                                new_v -= un * n
+            v[p] = new_v
+            C[p] = new_C
+            x[p] = x_new
+            F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
+            q = _qrow(mparams, m)
+            cid = 0
+            if ti.static(n_combo > 1):
+                cid = mcombo[m]
+            F_new = F_trial
+            tau_new = ti.Matrix.zero(ti.f32, 3, 3)
+            for ci in ti.static(range(n_combo)):
+                if cid == ci:
+                    F_new, tau_new = updates[ci](F_trial, q)
+            F[p] = F_new
+            tau[p] = tau_new
 
     return SimpleNamespace(substep=substep, spec=spec, colliders=col)
 

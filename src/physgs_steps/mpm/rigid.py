@@ -264,8 +264,10 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
 
     @ti.kernel
     def scatter(x: K.V1, v: K.V1, C: K.M1, F: K.M1, tau: K.M1, rb_p: K.I1, rb_b: K.I1, rb_r0: K.V1,
-                body_c: V1d, body_R: M1d, body_V: V1d, body_w: V1d):
-        """Particles onto the bodies' rigid motion: x = c + R r0, v = V + w x r, C = [w]x, F = R."""
+                body_c: V1d, body_R: M1d, body_V: V1d, body_w: V1d, body_K: M1d):
+        """Particles onto the bodies' rigid motion: x = c + R r0, v = V + w x r, C = [w]x, F = R K
+        (K: the constant rotation between the pose and the particles' F, identity unless a state
+        with rotated F was set)."""
         for j in rb_p:
             p = rb_p[j]
             b = rb_b[j]
@@ -275,7 +277,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
             x[p] = ti.cast(body_c[b] + r, ti.f32)
             v[p] = ti.cast(body_V[b] + w.cross(r), ti.f32)
             C[p] = ti.cast(_skew(w), ti.f32)
-            F[p] = ti.cast(R, ti.f32)
+            F[p] = ti.cast(R @ body_K[b], ti.f32)
             tau[p] = ti.Matrix.zero(ti.f32, 3, 3)
 
     return SimpleNamespace(reduce=reduce, advance=advance, scatter=scatter)
@@ -319,6 +321,7 @@ class RigidBodies:
         self.body_R = _nd(np.broadcast_to(np.eye(3), (self.n_bodies, 3, 3)).copy(), mat3d)
         self.body_V = _nd(np.zeros((self.n_bodies, 3)), vec3d)
         self.body_w = _nd(np.zeros((self.n_bodies, 3)), vec3d)
+        self.body_K = _nd(np.broadcast_to(np.eye(3), (self.n_bodies, 3, 3)).copy(), mat3d)
         T = max(1, int(n_chunks))
         self.part = ti.ndarray(ti.f64, (T, self.n_bodies, 6))
         cap = CT_PER_PARTICLE * (self.n_particles // T + 1) + 8
@@ -331,11 +334,12 @@ class RigidBodies:
         return {"c": self.body_c.to_numpy(), "R": self.body_R.to_numpy(), "V": self.body_V.to_numpy(),
                 "omega": self.body_w.to_numpy(), "mass": self.mass.copy()}
 
-    def fit_state(self, x: np.ndarray, v: np.ndarray, C: np.ndarray, mass: np.ndarray) -> None:
+    def fit_state(self, x: np.ndarray, v: np.ndarray, C: np.ndarray, F: np.ndarray, mass: np.ndarray) -> None:
         """Body poses and motion that best explain a particle state (storage order, metres):
         centre of mass, rotation by the Kabsch fit of r0 onto x - c, and the momentum and
-        angular momentum of the particles (APIC's affine part included, as in the reduction)."""
-        cs, Rs, Vs, ws = [], [], [], []
+        angular momentum of the particles (APIC's affine part included, as in the reduction),
+        and K = R^T polar(mean F) so that the particles keep their F's rotation."""
+        cs, Rs, Vs, ws, Ks = [], [], [], [], []
         rb_p = self.rb_p.to_numpy()
         rb_b = self.rb_b.to_numpy()
         r0 = self.rb_r0.to_numpy().astype(np.float64)
@@ -359,16 +363,20 @@ class RigidBodies:
             Rs.append(R)
             Vs.append(Vb)
             ws.append(np.linalg.solve(I, Lb))
+            Uf, _, Vf = np.linalg.svd((m[:, None, None] * F[p]).sum(0))
+            RF = Uf @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Uf @ Vf))]) @ Vf
+            Ks.append(R.T @ RF)
         self.body_c.from_numpy(np.array(cs))
+        self.body_K.from_numpy(np.array(Ks))
         self.body_R.from_numpy(np.array(Rs))
         self.body_V.from_numpy(np.array(Vs))
         self.body_w.from_numpy(np.array(ws))
 
     def copy_state(self) -> tuple:
-        return tuple(a.to_numpy() for a in (self.body_c, self.body_R, self.body_V, self.body_w))
+        return tuple(a.to_numpy() for a in (self.body_c, self.body_R, self.body_V, self.body_w, self.body_K))
 
     def restore_state(self, st: tuple) -> None:
-        for a, val in zip((self.body_c, self.body_R, self.body_V, self.body_w), st):
+        for a, val in zip((self.body_c, self.body_R, self.body_V, self.body_w, self.body_K), st):
             a.from_numpy(val)
 
 

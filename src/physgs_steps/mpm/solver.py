@@ -254,7 +254,7 @@ class MPMSolver:
         self.C.from_numpy(C[p].astype(np.float32))
         self.F.from_numpy(F[p].astype(np.float32))
         if self.rigid is not None:
-            self.rigid.fit_state(x[p] * self.L, v[p] * self.L, C[p], self._p_mass.to_numpy())
+            self.rigid.fit_state(x[p] * self.L, v[p] * self.L, C[p], F[p], self._p_mass.to_numpy())
         self._update_stress()
 
     def _full(self, a: np.ndarray, static_value) -> np.ndarray:
@@ -341,7 +341,7 @@ class MPMSolver:
             kr.advance(rb.part, rb.ct, rb.ct_count, rb.acc, rb.body_c, rb.body_R, rb.body_V, rb.body_w, rb.body_M,
                        rb.body_I0inv, float(dt))
             kr.scatter(self.x, self.v, self.C, self.F, self.tau, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R,
-                       rb.body_V, rb.body_w)
+                       rb.body_V, rb.body_w, rb.body_K)
         self.time += dt
 
     def stats(self) -> dict:
