@@ -17,11 +17,17 @@ include: "workflow/rules/report.smk"
 
 
 # `snakemake --cores 1` alone: the main job (bear), or the first scene of a custom scenes_dir.
-MAIN_SCENE = "bear" if "bear" in SCENES else SCENES[0]
-
-
 rule all:
     default_target: True
     input:
-        video=plan_path(MAIN_SCENE, "video"),
-        metrics=plan_path(MAIN_SCENE, "metrics"),
+        video=lambda w: plan_path(main_scene(), "video"),
+        metrics=lambda w: plan_path(main_scene(), "metrics"),
+
+
+# The warm stage worker (config `worker`, src/physgs_steps/worker.py) lives as long as the run.
+onsuccess:
+    stop_worker()
+
+
+onerror:
+    stop_worker()

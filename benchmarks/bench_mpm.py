@@ -5,6 +5,8 @@ P2G, float atomics, gravity and slip walls), on the same particles in the same p
     python benchmarks/bench_mpm.py                      # ti.cpu, and ti.cuda when available
     python benchmarks/bench_mpm.py --arch cuda --sizes 1000000
     python benchmarks/bench_mpm.py --arch cpu --sizes 30000 --seconds 5
+    python benchmarks/bench_mpm.py --arch cuda --sizes 300000 1000000 --warp-solver PhysGaussian/mpm_solver_warp
+    python benchmarks/bench_mpm.py --arch cuda --sizes 1000000 --profile     # Taichi kernel profiler per pass
 
 Particles fill a box in random order (as gaussians come from a .ply); the textbook kernel gets
 them in that order and, for reference, sorted by cell as physgs stores them.  The figure is
@@ -142,6 +144,16 @@ def bench_arch(arch: str, sizes: list, seconds: float) -> list:
         tb = Textbook(x, G, 1.0, m.mu, m.lam, p_vol, p_vol * m.density)
         tbs = Textbook(x[s._perm], G, 1.0, m.mu, m.lam, p_vol, p_vol * m.density)
         r_ours, n_ours = _rate(lambda: s.substep(dt), P, seconds)
+        if os.environ.get("PHYSGS_TI_PROFILER") == "1":
+            import taichi as ti
+
+            ti.profiler.clear_kernel_profiler_info()
+            for _ in range(20):
+                s.substep(dt)
+            ti.sync()
+            print(f"--- Taichi kernel profiler, physgs substep, P={P}, 20 substeps (offloaded tasks):", flush=True)
+            ti.profiler.print_kernel_profiler_info("count")
+            ti.profiler.clear_kernel_profiler_info()
         r_tb, _ = _rate(lambda: tb.substep(dt), P, seconds)
         r_tbs, _ = _rate(lambda: tbs.substep(dt), P, seconds)
         row = {"arch": s.arch, "particles": P, "n_grid": G, "physgs": r_ours, "textbook": r_tb,
@@ -165,14 +177,39 @@ def _cuda_available() -> bool:
         return r.stdout.strip().endswith("True")
 
 
+def _summary(rows: list) -> None:
+    """One line per size: physgs, textbook and the warp solver's variants (CUDA, same run)."""
+    by_size: dict = {}
+    for r in rows:
+        if r.get("arch") != "cuda":
+            continue
+        d = by_size.setdefault(r["particles"], {})
+        if "solver" in r:
+            d[r["solver"]] = r["rate"]
+        else:
+            d.update(physgs=r["physgs"], textbook=r["textbook"], textbook_sorted=r["textbook_sorted"])
+    for P, d in sorted(by_size.items()):
+        print(f"SUMMARY cuda P={P}: " + ", ".join(f"{k} {v:.3g}" for k, v in d.items()) +
+              (f"; physgs / warp no-sync {d['physgs'] / d['warp_no_sync']:.2f}" if "warp_no_sync" in d and "physgs" in d
+               else ""), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arch", choices=["cpu", "cuda", "all"], default="all")
     ap.add_argument("--sizes", type=int, nargs="+", default=[30_000, 300_000, 1_000_000])
     ap.add_argument("--seconds", type=float, default=3.0, help="measuring time per kernel and size")
     ap.add_argument("--json", help="also write the rows to this JSON file")
+    ap.add_argument("--profile", action="store_true",
+                    help="also print Taichi's kernel profiler for the physgs substep (per offloaded task; the "
+                         "profiler synchronises per task, so rates are measured before it)")
+    ap.add_argument("--warp-solver", metavar="DIR",
+                    help="also run PhysGaussian's warp solver from DIR (its mpm_solver_warp folder) on CUDA, "
+                         "as written and without host syncs (benchmarks/bench_mpm_warp.py; needs warp-lang)")
     ap.add_argument("--emit-rows", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.profile:
+        os.environ["PHYSGS_TI_PROFILER"] = "1"  # read by physgs_steps.mpm.backend (child processes too)
     if a.arch == "all":
         rows = []
         for arch in ["cpu"] + (["cuda"] if _cuda_available() else []):
@@ -193,6 +230,18 @@ def main() -> None:
         if a.emit_rows:
             print(ROWS + json.dumps(rows))
             return
+    if a.warp_solver and not a.emit_rows:
+        cmd = [sys.executable, os.path.join(os.path.dirname(__file__), "bench_mpm_warp.py"), "--physgaussian",
+               a.warp_solver, "--seconds", str(a.seconds), "--sizes", *map(str, a.sizes), "--emit-rows"]
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        for line in r.stdout.splitlines():
+            if line.startswith(ROWS):
+                rows += json.loads(line[len(ROWS):])
+            elif line.strip():
+                print(line, flush=True)
+        if r.returncode != 0:
+            print(r.stderr[-3000:], file=sys.stderr)
+        _summary(rows)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=2)

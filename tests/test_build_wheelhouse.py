@@ -141,3 +141,38 @@ def test_part_sizes_match_tar_and_respect_limit(tmp_path):
     assert len(parts) == 2
     with pytest.raises(bw.WheelhouseError, match="raise --split-mb"):
         bw.plan_parts({"huge.whl": 2_000_000}, limit)
+
+
+# ---------------------------------------------------------------------------- gsplat with CUDA code
+def test_cuda_arch_list_is_normalised_and_checked():
+    assert bw.parse_cuda_archs("8.0;9.0") == "8.0;9.0"
+    assert bw.parse_cuda_archs(" 8.6, 9.0+PTX ") == "8.6;9.0+PTX"
+    assert bw.parse_cuda_archs("9.0a 10.0") == "9.0a;10.0"
+    for bad in ("", "sm_90", "9", "9.0;ampere"):
+        with pytest.raises(bw.WheelhouseError, match="compute capabilities"):
+            bw.parse_cuda_archs(bad)
+
+
+def test_compiled_extension_tells_prebuilt_from_jit_wheels(tmp_path):
+    pure, built = tmp_path / "gsplat-1.5.3-py3-none-any.whl", tmp_path / "gsplat-1.5.3-cp311-cp311-linux_x86_64.whl"
+    with zipfile.ZipFile(pure, "w") as z:
+        z.writestr("gsplat/__init__.py", "")
+        z.writestr("gsplat/cuda/_backend.py", "")
+    with zipfile.ZipFile(built, "w") as z:
+        z.writestr("gsplat/__init__.py", "")
+        z.writestr("gsplat/csrc.so", b"\x7fELF")
+    assert bw.compiled_extension(pure) == []
+    assert bw.compiled_extension(built) == ["gsplat/csrc.so"]
+
+
+def test_gsplat_build_host_is_checked_before_anything_is_built(tmp_path):
+    torch = pytest.importorskip("torch")
+    here = f"{sys.version_info.major}.{sys.version_info.minor}"
+    with pytest.raises(bw.WheelhouseError, match="target is 3.99|python3.99"):
+        bw.cuda_build_host(bw.Target("3.99"), None)
+    if not torch.version.cuda:  # this machine (CPU torch): refused with the reason
+        with pytest.raises(bw.WheelhouseError, match="CPU build"):
+            bw.cuda_build_host(bw.Target(here), None)
+    # wired into the tool: --gsplat-cuda-arch without gsplat among the requirements
+    with pytest.raises(bw.WheelhouseError, match="gsplat is not among the requirements"):
+        run_tool("--out", str(tmp_path / "wh"), "--no-deps", "--gsplat-cuda-arch", "9.0", *OFFLINE)

@@ -117,7 +117,7 @@ GOOD = {"elasticity": "fixed_corotated", "plasticity": "identity", "E": 1.0e+5, 
 
 
 @pytest.mark.parametrize("change,needle", [
-    ({"E": "5.0e4"}, "finite number"),
+    ({"E": "50 kPa"}, "finite number"),
     ({"E": 1.0e+7}, "outside E_range"),
     ({"nu": 0.5}, "nu must lie"),
     ({"elasticity": "bogus"}, "unknown elasticity"),
@@ -133,6 +133,15 @@ def test_malformed_kb_is_an_input_error(tmp_path, change, needle):
     with pytest.raises(InputError) as ei:
         mkb.load_kb(p)
     assert str(p) in str(ei.value) and needle in str(ei.value)
+
+
+def test_scientific_notation_is_a_number(tmp_path):
+    """YAML 1.1 reads 5e4 as a string; the knowledge base reads it as YAML 1.2 does: a number."""
+    p = tmp_path / "kb.yaml"
+    p.write_text(yaml.safe_dump({"goo": GOOD}).replace("E: 100000.0", "E: 5e4").replace("- 10000.0", "- 1e4"))
+    assert "E: 5e4" in p.read_text() and "- 1e4" in p.read_text()
+    kb = mkb.load_kb(p)
+    assert kb["goo"]["E"] == 5e4 and kb["goo"]["E_range"][0] == 1e4
 
 
 def test_duplicate_alias_is_rejected(tmp_path):

@@ -1,9 +1,11 @@
-"""The metrics stage: plausibility figures from final.h5, CLIP and aesthetic scores."""
+"""The metrics stage: plausibility figures from final.h5, CLIP and aesthetic scores, the
+metrics.json shape. VideoPhy2 (SA, PC): tests/test_metrics_videophy2.py."""
 from __future__ import annotations
 
 import json
 import logging
 import math
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -11,7 +13,8 @@ import pytest
 
 from physgs_steps import metrics
 from physgs_steps.config import section_defaults
-from physgs_steps.errors import InputError
+from physgs_steps.errors import ConfigError, InputError
+from physgs_steps.metrics.scores import BASE_KEYS
 
 torch = pytest.importorskip("torch")
 
@@ -66,13 +69,30 @@ def cfg_for(**m):
     return {"metrics": c, "scene": {"prompt": "a jelly bear falls"}, "device": "cpu"}
 
 
+def strict_json(path):
+    """metrics.json parsed with NaN/Infinity refused (strict JSON)."""
+    def refuse(c):
+        raise AssertionError(f"{path} contains {c}")
+    return json.loads(open(path).read(), parse_constant=refuse)
+
+
+SCORES = {"clip_score": "CS", "aesthetic_score": "AS", "semantic_adherence": "SA", "physical_commonsense": "PC"}
+
+
 def test_without_weights_scores_are_null_with_reason(files):
     inputs, outputs = files
     summary = metrics.run(inputs, outputs, cfg_for(), LOG)
-    doc = json.loads(open(outputs["metrics"]).read())
-    assert doc["clip_score"]["value"] is None and "clip_model_path" in doc["clip_score"]["reason"]
-    assert doc["aesthetic_score"]["value"] is None and "aesthetic_model_path" in doc["aesthetic_score"]["reason"]
+    doc = strict_json(outputs["metrics"])
+    for key, col in SCORES.items():   # all four present, in the one shape, null with the reason
+        assert set(BASE_KEYS) <= set(doc[key]) and doc[key]["column"] == col, doc[key]
+        assert doc[key]["value"] is None and doc[key]["reason"] and doc[key]["paper_metric"] is None
+    assert "clip_model_path" in doc["clip_score"]["reason"]
+    assert "aesthetic_model_path" in doc["aesthetic_score"]["reason"]
+    for key in ("semantic_adherence", "physical_commonsense"):
+        assert "metrics.videophy2.official.command" in doc[key]["reason"] and "inprocess.model_path" in doc[key]["reason"]
+    assert doc["schema_version"] == 2
     assert summary["clip_score"] is None and summary["all_checks_pass"] is True
+    assert summary["semantic_adherence"] is None and summary["physical_commonsense"] is None
     assert doc["video"]["n_frames"] == 6 and doc["video"]["width"] == 64 and doc["video"]["fps"] == 10
     assert doc["materials"][0]["material"] == "jelly" and doc["materials"][0]["source"] == "prior"
     assert doc["text"] == "a jelly bear falls"
@@ -195,20 +215,70 @@ def test_clip_and_aesthetic_scores_with_tiny_models(files, tiny_clip, tmp_path):
     assert clip["value"] == pytest.approx(float(cos.mean()), abs=1e-5)
     assert aes["value"] == pytest.approx(float(ref_aes.mean()), abs=1e-5)
     assert -1.0 <= clip["value"] <= 1.0
+    assert clip["backend"] == "clip" and aes["backend"] == "laion_aesthetic" and clip["reason"] is None
+    assert clip["paper_metric"] is True and aes["architecture"]["layers"] == "16-8-4-1"
 
 
-def test_aesthetic_problems_are_reported(files, tiny_clip, tmp_path):
+def test_absent_weights_are_null_wrong_weights_are_config_errors(files, tiny_clip, tmp_path):
     inputs, outputs = files
-    torch.save(torch.nn.Linear(768, 1).state_dict(), tmp_path / "l14.pth")   # LAION v1 style, 768-d
-    metrics.run(inputs, outputs, cfg_for(clip_model_path=tiny_clip, aesthetic_model_path=str(tmp_path / "l14.pth"),
-                                         n_frames=2), LOG)
-    doc = json.loads(open(outputs["metrics"]).read())
-    assert doc["clip_score"]["value"] is not None
-    assert doc["aesthetic_score"]["value"] is None and "768" in doc["aesthetic_score"]["reason"]
+    # absent files: null with the reason naming the path (a machine without the weights)
     metrics.run(inputs, outputs, cfg_for(clip_model_path=tiny_clip, aesthetic_model_path=str(tmp_path / "none.pth"),
                                          n_frames=2), LOG)
-    doc = json.loads(open(outputs["metrics"]).read())
+    doc = strict_json(outputs["metrics"])
+    assert doc["clip_score"]["value"] is not None and doc["clip_score"]["backend"] == "clip"
+    assert doc["clip_score"]["architecture"] == {"variant": "ViT (32-d, 2 layers, patch 8)", "image_size": 32,
+                                                 "embedding_dim": 16}
     assert doc["aesthetic_score"]["value"] is None and "none.pth" in doc["aesthetic_score"]["reason"]
     metrics.run(inputs, outputs, cfg_for(clip_model_path=str(tmp_path / "no_clip"), n_frames=2), LOG)
-    doc = json.loads(open(outputs["metrics"]).read())
+    doc = strict_json(outputs["metrics"])
     assert doc["clip_score"]["value"] is None and "no_clip" in doc["clip_score"]["reason"]
+
+    # present but wrong: the stage stops naming the key and what is wrong, writing nothing
+    def fails(match, **m):
+        out = tmp_path / "bad_metrics.json"
+        with pytest.raises(ConfigError, match=match):
+            metrics.run(inputs, {"metrics": str(out)}, cfg_for(n_frames=2, **m), LOG)
+        assert not out.exists()
+
+    torch.save(torch.nn.Linear(768, 1).state_dict(), tmp_path / "l14.pth")   # LAION v1 style head, 768-d
+    fails(r"metrics.aesthetic_model_path.*768-d.*16-d", clip_model_path=tiny_clip,
+          aesthetic_model_path=str(tmp_path / "l14.pth"))
+    torch.save({"layers.0.weight": torch.zeros(4, 16), "layers.2.weight": torch.zeros(2, 4)}, tmp_path / "two.pth")
+    fails(r"metrics.aesthetic_model_path.*one score", clip_model_path=tiny_clip,
+          aesthetic_model_path=str(tmp_path / "two.pth"))
+    (tmp_path / "junk.pth").write_bytes(b"not a torch file")
+    fails(r"metrics.aesthetic_model_path.*not a readable", clip_model_path=tiny_clip,
+          aesthetic_model_path=str(tmp_path / "junk.pth"))
+    other = tmp_path / "not_clip"
+    other.mkdir()
+    (other / "config.json").write_text(json.dumps({"model_type": "bert", "hidden_size": 8}))
+    fails(r"metrics.clip_model_path.*'bert' model, not CLIP", clip_model_path=str(other))
+    (tmp_path / "empty").mkdir()
+    fails(r"metrics.clip_model_path.*no readable config.json", clip_model_path=str(tmp_path / "empty"))
+    partial = tmp_path / "partial_clip"   # a CLIP config with weights of only the text tower
+    partial.mkdir()
+    import shutil
+    from safetensors.torch import load_file, save_file
+
+    for f in (Path(tiny_clip)).iterdir():
+        if f.name != "model.safetensors":
+            shutil.copy(f, partial / f.name)
+    sd = load_file(str(Path(tiny_clip) / "model.safetensors"))
+    save_file({k: v for k, v in sd.items() if not k.startswith("vision_model")}, str(partial / "model.safetensors"),
+              metadata={"format": "pt"})
+    fails(r"metrics.clip_model_path.*lacks weights", clip_model_path=str(partial))
+
+
+def test_default_path_imports_no_torch(files, tmp_path):
+    """Without weights the stage never imports torch or transformers (fast start-up)."""
+    import subprocess
+    import sys
+
+    inputs, _ = files
+    code = (f"import json, logging, sys; from physgs_steps import metrics; from physgs_steps.config import section_defaults\n"
+            f"cfg = {{'metrics': section_defaults('metrics'), 'scene': {{'prompt': 'p'}}, 'device': 'auto'}}\n"
+            f"metrics.run({inputs!r}, {{'metrics': {str(tmp_path / 'm.json')!r}}}, cfg, logging.getLogger('t'))\n"
+            f"print(sorted(m for m in ('torch', 'transformers') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip().splitlines()[-1] == "[]"

@@ -214,6 +214,22 @@ def test_header_count_larger_than_data(tmp_path):
     expect_error(write_ply(tmp_path / "t.ply", core_fields(10), count=11), "truncated")
 
 
+def test_header_count_smaller_than_data(tmp_path):
+    """Loading only the declared vertices would silently drop the rest: an error (issue #19)."""
+    expect_error(write_ply(tmp_path / "t.ply", core_fields(10), count=8), "2 more whole vertices",
+                 "smaller than the data")
+
+
+def test_double_positions_beyond_float32_are_an_error(tmp_path):
+    """A double that overflows float32 is finite in the file but inf after the cast."""
+    f = core_fields(6)
+    f["x"] = f["x"].astype(np.float64)
+    f["x"][4] = 1e39
+    expect_error(write_ply(tmp_path / "t.ply", f), "'x': 1 values (first at index 4, 1e+39)", "float32 range")
+    f["x"][4] = 3.0e38  # within float32: loads
+    assert np.isfinite(load_gaussians(write_ply(tmp_path / "u.ply", f)).means).all()
+
+
 def test_missing_opacity(tmp_path):
     f = core_fields(3)
     del f["opacity"]

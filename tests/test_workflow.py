@@ -6,6 +6,7 @@ with the tiny configuration of tests/slurm/config.yaml (2000 gaussians, 16^3 gri
 """
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -20,9 +21,9 @@ TINY = REPO / "tests" / "slurm" / "config.yaml"
 LINKED = ["Snakefile", "workflow", "config", "src", "tests", "profiles"]
 
 
-def smk(cwd: Path, *args: str, timeout: float = 600) -> str:
+def smk(cwd: Path, *args: str, timeout: float = 600, env: dict | None = None) -> str:
     p = subprocess.run([sys.executable, "-m", "snakemake", *args], cwd=cwd, capture_output=True, text=True,
-                       timeout=timeout, stdin=subprocess.DEVNULL)
+                       timeout=timeout, stdin=subprocess.DEVNULL, env=env)
     out = p.stdout + p.stderr
     assert p.returncode == 0, f"snakemake {' '.join(args)} failed:\n{out[-6000:]}"
     return out
@@ -46,7 +47,11 @@ def run_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def finished(run_dir):
-    smk(run_dir, "--cores", "2", "results/bear/stage_report.tsv", "--configfile", str(TINY))
+    # the GPU chain runs in the warm stage worker (worker.py), as on a GPU machine; the run stops it
+    env = dict(os.environ, PHYSGS_WORKER="1", PHYSGS_WORKER_DIR=str(run_dir / ".worker"))
+    out = smk(run_dir, "--cores", "2", "results/bear/stage_report.tsv", "--configfile", str(TINY), env=env)
+    assert "in the warm worker" in out and "stopped the warm stage worker" in out, out[-3000:]
+    assert not list((run_dir / ".worker").glob("*.sock"))
     return run_dir
 
 
@@ -103,3 +108,32 @@ def test_no_bgdo_ablation_shares_upstream(finished):
     out = smk(finished, "-n", "results/bear/ablations/no_bgdo/video.mp4", "--configfile", str(TINY))
     rules = planned_rules(out)
     assert set(rules) == {"final_sim", "render"}, rules
+
+
+def test_outputs_are_strict_json_and_readable_under_the_umask(finished):
+    """Every JSON artifact (files and HDF5 JSON attributes) parses under a strict parser (no
+    Infinity/NaN), and every artifact has the mode the umask gives new files (issue #19)."""
+    import json
+    import os
+
+    import h5py
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+
+    umask = os.umask(0)
+    os.umask(umask)
+    want = 0o666 & ~umask
+    artifacts = [p for p in (finished / "results").rglob("*") if p.is_file()
+                 and p.suffix in (".json", ".h5", ".ply", ".npz", ".mp4", ".png", ".tsv") and "benchmarks" not in p.parts]
+    assert len(artifacts) > 10
+    for p in artifacts:
+        assert p.stat().st_mode & 0o777 == want, (p, oct(p.stat().st_mode))
+        if p.suffix == ".json":
+            strict(p.read_text())
+        if p.suffix == ".h5":
+            with h5py.File(p, "r") as f:
+                for k in ("params", "stats", "sim_config"):
+                    if k in f.attrs:
+                        strict(f.attrs[k])
+    assert not list((finished / "results").rglob(".*.part*")), "temporary files left behind"

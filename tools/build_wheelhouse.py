@@ -33,6 +33,8 @@ import argparse
 import hashlib
 import json
 import math
+import os
+import re
 import shutil
 import subprocess
 import sys
@@ -80,11 +82,11 @@ def parse_python_version(text: str) -> str:
     return text
 
 
-def run_pip(args: list[str], log, capture: bool = False) -> subprocess.CompletedProcess:
+def run_pip(args: list[str], log, capture: bool = False, env: dict | None = None) -> subprocess.CompletedProcess:
     """Run ``python -m pip ARGS``; raise WheelhouseError with pip's output on failure."""
     cmd = [sys.executable, "-m", "pip", *args]
     log(f"$ {' '.join(cmd)}")
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         out = (proc.stdout + proc.stderr).strip().splitlines()
         raise WheelhouseError(f"pip {args[0]} failed (exit {proc.returncode}):\n" + "\n".join(out[-25:]))
@@ -187,6 +189,76 @@ def download_for_target(reqs: list[str], target: Target, out: Path, constraints:
              "--constraint", str(constraints), *pip_extra, *reqs], log)
 
 
+# ---------------------------------------------------------------------------- gsplat with CUDA code
+ARCH_RE = re.compile(r"^\d+\.\d+a?(\+PTX)?$")
+
+
+def parse_cuda_archs(text: str) -> str:
+    """``"8.0;9.0"``, ``"8.6 9.0+PTX"`` or ``"8.0,9.0"`` -> ``"8.0;9.0"`` (TORCH_CUDA_ARCH_LIST form)."""
+    archs = [a for a in re.split(r"[;,\s]+", text.strip()) if a]
+    bad = [a for a in archs if not ARCH_RE.match(a)]
+    if not archs or bad:
+        raise WheelhouseError(f"--gsplat-cuda-arch takes compute capabilities like '8.0;9.0' or '8.6+PTX' "
+                              f"(nvidia-smi --query-gpu=compute_cap on a node), got '{text}'")
+    return ";".join(archs)
+
+
+def cuda_build_host(target: Target, torch_pin: str | None) -> dict:
+    """Check that this machine can compile gsplat's CUDA code for the target: the target's
+    Python, a CUDA build of the target's torch, nvcc. Returns {torch, cuda, nvcc}."""
+    host = f"{sys.version_info.major}.{sys.version_info.minor}"
+    if host != target.python_version:
+        raise WheelhouseError(f"gsplat's CUDA extension is built for the Python that builds it ({host}), the "
+                              f"target is {target.python_version}: run this with python{target.python_version}")
+    try:
+        import torch
+    except ImportError:
+        raise WheelhouseError("--gsplat-cuda-arch needs torch installed here (the CUDA build the nodes will run: "
+                              "the extension is compiled against it)") from None
+    if not torch.version.cuda:
+        raise WheelhouseError(f"torch {torch.__version__} here is a CPU build; building gsplat's CUDA code needs "
+                              "the CUDA build of torch that the nodes run (and nvcc)")
+    local = torch.__version__.split("+")[0]
+    if torch_pin and torch_pin != local:
+        raise WheelhouseError(f"the wheelhouse holds torch {torch_pin} but torch here is {torch.__version__}: "
+                              "gsplat's extension only loads with the torch it was compiled against; install "
+                              f"torch=={torch_pin} (CUDA build) here or pin --requirement torch=={local}")
+    from torch.utils.cpp_extension import CUDA_HOME
+
+    nvcc = shutil.which("nvcc") or (str(Path(CUDA_HOME) / "bin" / "nvcc") if CUDA_HOME else None)
+    if not nvcc or not Path(nvcc).exists():
+        raise WheelhouseError("nvcc (the CUDA toolkit) was not found (set CUDA_HOME or put nvcc on PATH)")
+    return {"torch": torch.__version__, "cuda": torch.version.cuda, "nvcc": nvcc}
+
+
+def compiled_extension(wheel: Path) -> list[str]:
+    """The compiled modules (``*.so``) inside a gsplat wheel (empty for the pure JIT wheel)."""
+    import zipfile
+
+    with zipfile.ZipFile(wheel) as z:
+        return [n for n in z.namelist() if n.startswith("gsplat/") and n.endswith(".so")]
+
+
+def build_gsplat_cuda(version: str, archs: str, out: Path, pip_extra: list[str], log, max_jobs: int | None) -> Path:
+    """Build gsplat==version from source with its CUDA code compiled for ``archs`` into ``out``."""
+    env = dict(os.environ, TORCH_CUDA_ARCH_LIST=archs, BUILD_NO_CUDA="0")
+    if max_jobs:
+        env["MAX_JOBS"] = str(max_jobs)
+    with tempfile.TemporaryDirectory(prefix="wheelhouse-gsplat-") as tmp:
+        run_pip(["wheel", "--no-deps", "--no-build-isolation", "--no-binary", "gsplat", "--wheel-dir", tmp,
+                 *pip_extra, f"gsplat=={version}"], log, env=env)
+        built = sorted(Path(tmp).glob("gsplat-*.whl"))
+        if len(built) != 1:
+            raise WheelhouseError(f"building gsplat gave {len(built)} wheels, expected 1")
+        if not compiled_extension(built[0]):
+            raise WheelhouseError(f"{built[0].name} holds no compiled CUDA extension (was BUILD_NO_CUDA set?)")
+        dest = out / built[0].name
+        shutil.move(str(built[0]), dest)
+    log(f"built {dest.name}: gsplat {version} with CUDA code for compute capability {archs} "
+        f"({', '.join(compiled_extension(dest))})")
+    return dest
+
+
 def sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -277,6 +349,18 @@ def write_manifest(out: Path, target: Target, requirements: list[str], built_her
     return wheels
 
 
+def _gsplat_plan(args, items: list[dict], target: Target) -> dict | None:
+    """{version, archs, host} when --gsplat-cuda-arch asks for a compiled gsplat, else None."""
+    if not getattr(args, "gsplat_cuda_arch", None):
+        return None
+    archs = parse_cuda_archs(args.gsplat_cuda_arch)
+    found = {canonicalize_name(it["metadata"]["name"]): it["metadata"]["version"] for it in items}
+    if "gsplat" not in found:
+        raise WheelhouseError("--gsplat-cuda-arch: gsplat is not among the requirements (add --extras slurm,gpu)")
+    host = cuda_build_host(target, found.get("torch"))
+    return {"version": found["gsplat"], "archs": archs, "host": host}
+
+
 def describe(items: list[dict]) -> str:
     rows = []
     for it in sorted(items, key=lambda i: canonicalize_name(i["metadata"]["name"])):
@@ -319,13 +403,26 @@ def build(args: argparse.Namespace, log=print) -> dict:
             dep_args = []
         items = target_resolution(reqs, target, stage, constraints, pip_extra + dep_args, work, log)
         if args.dry_run:
+            gsplat = _gsplat_plan(args, items, target)
+            if gsplat:
+                log(f"would build gsplat {gsplat['version']} here with CUDA code for {gsplat['archs']} "
+                    f"(torch {gsplat['host']['torch']}, nvcc {gsplat['host']['nvcc']})")
             log(f"would put {len(items)} wheels into {out} for Python {target.python_version} "
                 f"on {', '.join(target.platforms) or 'this platform'}:\n{describe(items)}")
             if built_here:
                 log("built here (pure Python, no wheel on the index): " + ", ".join(built_here))
             return {"dry_run": True, "items": items, "built_here": built_here, "project_wheel": wheel.name}
+        gsplat = _gsplat_plan(args, items, target)  # checks this machine before downloading
         download_for_target(reqs, target, out, constraints, pip_extra + dep_args, log)
     wheels = wheels_of(items, out, log)
+    if gsplat:
+        pure = [w for w in wheels if canonicalize_name(parse_wheel_filename(w)[0]) == "gsplat"]
+        built = build_gsplat_cuda(gsplat["version"], gsplat["archs"], out, pip_extra, log, args.max_jobs)
+        for w in pure:
+            if w != built.name:
+                (out / w).unlink()
+        wheels = sorted([w for w in wheels if w not in pure] + [built.name])
+        built_here.append(f"gsplat=={gsplat['version']} (CUDA {gsplat['archs']}, torch {gsplat['host']['torch']})")
     shown_reqs = [r.replace(str(wheel), wheel.name) for r in reqs]
     wheels = write_manifest(out, target, shown_reqs, built_here, wheels)
     parts = write_parts(out, wheels, int(args.split_mb * 2**20), log) if args.split_mb else []
@@ -358,6 +455,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--pip-arg", action="append",
                    help="extra option passed to every pip call, repeatable, e.g. "
                         "--pip-arg=--extra-index-url=https://download.pytorch.org/whl/cu121")
+    p.add_argument("--gsplat-cuda-arch", default=None,
+                   help="build gsplat here with its CUDA code compiled for these compute capabilities "
+                        "(e.g. '8.0;9.0': A100 and H100; nvidia-smi --query-gpu=compute_cap on a node) instead of "
+                        "the pure wheel that JIT-compiles on first use; needs the target's Python, the CUDA build "
+                        "of the wheelhouse's torch and nvcc here")
+    p.add_argument("--max-jobs", type=int, default=None, help="parallel compiler jobs of the gsplat build (MAX_JOBS)")
     p.add_argument("--dry-run", action="store_true",
                    help="resolve for the target and list the wheels without downloading them")
     return p

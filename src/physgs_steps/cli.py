@@ -4,6 +4,8 @@
     physgs stage fill bear                # run one stage of a target (inputs must exist)
     physgs stage forward_sim bear --step it0
     physgs stages bear                    # every stage of a target in order, in this process
+    physgs check                          # every problem of the config and of every scene file
+    physgs bench pipeline bear            # time the whole pipeline per structure (pipeline_bench.py)
 
 Snakemake is the way to run the pipeline (caching, clusters); this is for debugging a stage
 and for machines where only the library is installed (e.g. a GPU node for benchmarks).
@@ -24,29 +26,12 @@ STAGES = ("prepare", "cluster", "fill", "vlm_params", "pinned_params", "forward_
 
 
 def _stage_fn(name: str):
-    if name == "prepare":
-        from .prepare import run
-    elif name == "cluster":
-        from .cluster import run
-    elif name == "fill":
-        from .fill import run
-    elif name == "vlm_params":
-        from .params.stage import run
-    elif name == "pinned_params":
-        from .params.stage import run_pinned as run
-    elif name == "forward_sim":
-        from .simulate import run_forward as run
-    elif name == "final_sim":
-        from .simulate import run_final as run
-    elif name == "bgdo_update":
-        from .bgdo import run
-    elif name == "render":
-        from .render.stage import run
-    elif name == "metrics":
-        from .metrics import run
-    else:
+    """The library function of a stage (imported now; see worker.ENTRIES)."""
+    from .worker import stage_function
+
+    if name not in STAGES:
         raise PhysGSError(f"unknown stage '{name}'; stages: {', '.join(STAGES)}")
-    return run
+    return stage_function(name)
 
 
 def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, dict, dict]:
@@ -96,13 +81,24 @@ def main(argv=None) -> int:
     ss.add_argument("stage", choices=STAGES)
     ss.add_argument("target")
     ss.add_argument("--step", default=None)
+    ss.add_argument("--summary", default=None, help="write the stage's seconds and memory to this JSON file")
     sj = sub.add_parser("jobs", help="print the (stage, step) jobs of a target in order, one per line")
     sj.add_argument("target")
     sa = sub.add_parser("stages", help="run every stage of a target in order (skips existing outputs unless --force)")
     sa.add_argument("target")
     sa.add_argument("--force", action="store_true")
     sa.add_argument("--summary", default=None, help="write per-stage seconds and memory to this JSON file")
+    sub.add_parser("check", help="list every problem of the global config and of every scene file (exit 1 if any)")
+    sb = sub.add_parser("bench", help="pipeline benchmarks (physgs bench pipeline|startup ...; see pipeline_bench.py)",
+                        add_help=False)
+    sb.add_argument("rest", nargs=argparse.REMAINDER)
     args = ap.parse_args(argv)
+    if args.cmd == "check":
+        return _check(args.config)
+    if args.cmd == "bench":
+        from .pipeline_bench import main as bench_main
+
+        return bench_main(args.rest)
     try:
         cfg = C.load_config(args.config)
         scene, abl = P.parse_target(args.target)
@@ -131,6 +127,21 @@ def main(argv=None) -> int:
     except PhysGSError as e:
         print(f"physgs: {e}", file=sys.stderr)
         return 1
+
+
+def _check(config_path) -> int:
+    from .check import check_all
+
+    problems, n_files = check_all(config_path)
+    for p in problems:
+        print(p)
+    files = len({p.file for p in problems})
+    if problems:
+        print(f"physgs check: {len(problems)} problem(s) in {files} file(s) ({n_files} scene files checked)",
+              file=sys.stderr)
+        return 1
+    print(f"physgs check: no problems (global config and {n_files} scene files)")
+    return 0
 
 
 if __name__ == "__main__":

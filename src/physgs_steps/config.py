@@ -8,18 +8,29 @@ top-level keys and points at the section files with ``$ref``. A scene file
 ``config:`` key, and an ablation (``ablations:`` in the global config) overlays sections too.
 
 Every error names the key path (``fill.sigma``) and the file it came from.
+
+Numbers are read as people write them. YAML 1.1 (PyYAML, and Snakemake's own config
+loader) reads ``5e4`` or ``2.0e4`` as strings, and Snakemake's ``--config`` reads every
+nested value as a string. So :func:`validate` converts, before checking, every string
+where the schema expects a number, an integer, a boolean or null and the string spells one
+(``"5e4"`` -> 50000.0, ``"32"`` -> 32, ``"true"`` -> True, ``"null"`` -> None; an integral
+float such as ``1.5e2`` where an integer is expected -> 150); any other string stays a
+string and fails with the schema's message. Where physgs reads YAML itself (scene files,
+the knowledge base) :class:`YamlLoader` resolves floats by the YAML 1.2 rule as well.
 """
 from __future__ import annotations
 
 import copy
 import functools
+import math
+import re
 from pathlib import Path
 from typing import Any
 
 import jsonschema
 import yaml
 
-from .errors import ConfigError
+from .errors import ConfigError, InputError
 from .runtime import project_root
 
 SECTIONS = ("prepare", "cluster", "fill", "materials", "sim", "bgdo", "render", "metrics")
@@ -29,6 +40,86 @@ def schema_dir() -> Path:
     return project_root() / "workflow" / "schemas"
 
 
+# ---------------------------------------------------------------------------- YAML
+class YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2's float rule: ``5e4``, ``1E-3`` and ``.5`` are floats
+    (YAML 1.1 requires a dot and a signed exponent, so PyYAML reads ``5e4`` as a string)."""
+
+
+YamlLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+YamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?(?:[eE][-+]?[0-9]+)?
+                |[-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                |[-+]?\.(?:inf|Inf|INF)
+                |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."))
+
+
+def load_yaml(stream):
+    """``yaml.load`` with :class:`YamlLoader` (a string or an open file)."""
+    return yaml.load(stream, Loader=YamlLoader)
+
+
+# ---------------------------------------------------------------------------- numbers as strings
+_NUMBER = re.compile(r"^[-+]?(?:\d[\d_]*\.?\d*|\.\d+)(?:[eE][-+]?\d+)?$")
+_TRUE, _FALSE, _NULL = {"true", "True", "TRUE"}, {"false", "False", "FALSE"}, {"null", "Null", "NULL", "~"}
+
+
+def _types(schema: dict) -> set[str]:
+    """The JSON types a schema admits (its ``type`` and those of ``anyOf``/``oneOf`` branches)."""
+    t = schema.get("type")
+    out = set(t if isinstance(t, list) else [t] if t else [])
+    for branch in (schema.get("anyOf") or []) + (schema.get("oneOf") or []):
+        if isinstance(branch, dict):
+            out |= _types(branch)
+    return out
+
+
+def coerce_scalar(value: Any, schema: dict) -> Any:
+    """``value`` converted to the type ``schema`` expects when it is a string spelling that
+    type (numbers, booleans, null) or an integral float where only integers are allowed;
+    otherwise ``value`` unchanged (the schema check then reports it)."""
+    types = _types(schema)
+    if isinstance(value, str) and "string" not in types:
+        v = value.strip()
+        if types & {"number", "integer"} and _NUMBER.match(v):
+            num = float(v.replace("_", ""))
+            if "integer" in types and num.is_integer() and ("number" not in types or re.fullmatch(r"[-+]?[\d_]+", v)):
+                return int(num)
+            return num
+        if "boolean" in types and v in _TRUE | _FALSE:
+            return v in _TRUE
+        if "null" in types and v in _NULL:
+            return None
+    elif isinstance(value, float) and "integer" in types and "number" not in types and value.is_integer():
+        return int(value)
+    return value
+
+
+def coerce(instance: Any, schema: dict) -> Any:
+    """Apply :func:`coerce_scalar` through ``instance`` (in place for dicts and lists) along
+    ``properties``, ``additionalProperties`` and ``items``; returns the (possibly new) value."""
+    if not isinstance(schema, dict):
+        return instance
+    if isinstance(instance, dict):
+        props = schema.get("properties") or {}
+        extra = schema.get("additionalProperties")
+        for key in list(instance):
+            sub = props.get(key, extra if isinstance(extra, dict) else None)
+            if sub is not None:
+                instance[key] = coerce(instance[key], sub)
+        return instance
+    if isinstance(instance, list):
+        items = schema.get("items")
+        if isinstance(items, dict):
+            for i, v in enumerate(instance):
+                instance[i] = coerce(v, items)
+        return instance
+    return coerce_scalar(instance, schema)
+
+
+# ---------------------------------------------------------------------------- schemas
 @functools.lru_cache(maxsize=None)
 def _load_schema_file(name: str) -> dict:
     path = schema_dir() / name
@@ -75,19 +166,47 @@ def _defaults_validator():
 _Validator = _defaults_validator()
 
 
-def validate(instance: Any, schema: dict, source: str, prefix: str = "") -> Any:
-    """Validate ``instance`` in place, filling defaults; raise ConfigError on the first error."""
+def problems(instance: Any, schema: dict, source: str, prefix: str = "") -> list[ConfigError]:
+    """Every schema violation of ``instance`` (after :func:`coerce`, defaults filled in place),
+    one ConfigError each, ordered by key path."""
+    coerce(instance, schema)
     v = _Validator(schema)
-    errors = sorted(v.iter_errors(instance), key=lambda e: list(e.absolute_path))
-    if errors:
-        e = errors[0]
+    out = []
+    for e in sorted(v.iter_errors(instance), key=lambda e: [str(p) for p in e.absolute_path]):
         path = ".".join(str(p) for p in e.absolute_path)
         key = ".".join(p for p in (prefix, path) if p) or "<root>"
         msg = e.message
         if e.validator == "additionalProperties":
             allowed = sorted((e.schema.get("properties") or {}).keys())
             msg += f"; allowed keys: {', '.join(allowed)}"
-        raise ConfigError(key, msg, source)
+        elif e.validator == "enum":
+            msg = f"{e.instance!r} is not one of the valid choices: {', '.join(map(str, e.validator_value))}"
+        elif e.validator == "type" and isinstance(e.instance, str) and "object" in _types(e.schema):
+            msg += " (a mapping is expected; on the command line: --config '<section>={key: value}')"
+        out.append(ConfigError(key, msg, source))
+    for path in _nonfinite(instance):  # YAML's .inf / .nan pass every schema bound
+        key = ".".join(p for p in (prefix, path) if p) or "<root>"
+        out.append(ConfigError(key, "must be a finite number (got inf or nan)", source))
+    return out
+
+
+def _nonfinite(node: Any, path: str = "") -> list[str]:
+    """Key paths of the non-finite floats in ``node``."""
+    if isinstance(node, float):
+        return [] if math.isfinite(node) else [path]
+    if isinstance(node, dict):
+        return [p for k, v in node.items() for p in _nonfinite(v, f"{path}.{k}" if path else str(k))]
+    if isinstance(node, list):
+        return [p for i, v in enumerate(node) for p in _nonfinite(v, f"{path}.{i}" if path else str(i))]
+    return []
+
+
+def validate(instance: Any, schema: dict, source: str, prefix: str = "") -> Any:
+    """Validate ``instance`` in place (numbers written as strings converted, defaults filled);
+    raise ConfigError on the first error."""
+    errors = problems(instance, schema, source, prefix)
+    if errors:
+        raise errors[0]
     return instance
 
 
@@ -110,16 +229,18 @@ def deep_merge(base: dict, over: dict | None) -> dict:
 def read_yaml(path: str | Path) -> dict:
     path = Path(path)
     if not path.exists():
-        raise ConfigError(str(path), "file does not exist")
+        raise InputError(path, "file does not exist")
     try:
         with open(path) as f:
-            data = yaml.safe_load(f)
+            data = load_yaml(f)
     except yaml.YAMLError as e:
-        raise ConfigError(str(path), f"not valid YAML: {e}") from None
+        raise InputError(path, f"not valid YAML: {' '.join(str(e).split())}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(path, f"cannot be read: {e}") from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(str(path), f"top level must be a mapping, got {type(data).__name__}")
+        raise InputError(path, f"top level must be a mapping, got {type(data).__name__}")
     return data
 
 
@@ -133,11 +254,56 @@ def load_config(path: str | Path | None = None) -> dict:
     return validate_config(read_yaml(path), str(path))
 
 
-def scene_path(cfg: dict, scene: str) -> Path:
+def origin_of(key: str, layers: list[tuple[str, dict]]) -> str | None:
+    """Which config layer sets ``key`` (a dotted path such as ``sim.n_grid``): the name of the
+    last of ``layers`` (``[(name, dict)]`` in the order they are applied) that holds it."""
+    found = None
+    for name, data in layers:
+        node, ok = data, True
+        for part in key.split("."):
+            if isinstance(node, dict) and part in node:
+                node = node[part]
+            elif isinstance(node, list) and part.isdigit() and int(part) < len(node):
+                node = node[int(part)]
+            else:
+                ok = False
+                break
+        if ok:
+            found = name
+    return found
+
+
+SCENE_NAME = re.compile(r"[A-Za-z0-9_\-]+")  # the workflow's {scene} wildcard
+
+
+def scenes_dir(cfg: dict) -> Path:
+    """The scene folder (``scenes_dir``; relative paths from the repository root)."""
     d = Path(cfg.get("scenes_dir", "config/scenes"))
-    if not d.is_absolute():
-        d = project_root() / d
-    return d / f"{scene}.yaml"
+    return d if d.is_absolute() else project_root() / d
+
+
+def list_scenes(cfg: dict) -> tuple[list[str], ConfigError | None]:
+    """(sorted scene names, None) from the ``*.yaml`` files of ``scenes_dir``, or ([], the
+    problem) when the folder is missing, not a folder or holds no scene file. Files whose
+    name is not a valid scene name (letters, digits, ``_``, ``-``) are left out
+    (:func:`scene_file_problems` reports them)."""
+    d = scenes_dir(cfg)
+    given = cfg.get("scenes_dir", "config/scenes")
+    if not d.exists():
+        return [], ConfigError("scenes_dir", f"folder {given!r} ({d}) does not exist; set scenes_dir to a folder of "
+                                             "scene files (<name>.yaml), e.g. config/scenes")
+    if not d.is_dir():
+        return [], ConfigError("scenes_dir", f"{given!r} ({d}) is a file, not a folder of scene files (<name>.yaml)")
+    names = sorted(p.stem for p in d.glob("*.yaml") if SCENE_NAME.fullmatch(p.stem))
+    if not names:
+        others = sorted(p.name for p in d.iterdir())[:5]
+        return [], ConfigError("scenes_dir", f"folder {given!r} ({d}) holds no scene file (<name>.yaml with a name of "
+                                             f"letters, digits, _ or -); it holds {others or 'nothing'}")
+    return names, None
+
+
+def scene_path(cfg: dict, scene: str) -> Path:
+    return scenes_dir(cfg) / f"{scene}.yaml"
 
 
 def load_scene(cfg: dict, scene: str) -> dict:
@@ -145,7 +311,8 @@ def load_scene(cfg: dict, scene: str) -> dict:
     path = scene_path(cfg, scene)
     if not path.exists():
         known = sorted(p.stem for p in path.parent.glob("*.yaml"))
-        raise ConfigError("scene", f"no scene file {path}; known scenes: {', '.join(known)}")
+        raise ConfigError("scene", f"unknown scene '{scene}': no scene file {path}; known scenes: "
+                                   f"{', '.join(known) or '(none)'}")
     data = read_yaml(path)
     validate(data, load_schema("scene.schema.yaml"), str(path))
     overrides = data.get("config") or {}

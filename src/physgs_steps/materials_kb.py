@@ -147,8 +147,10 @@ def _load_kb_cached(path: str) -> dict[str, dict]:
     p = Path(path)
     if not p.exists():
         raise InputError(p, "material knowledge base does not exist")
+    from .config import load_yaml  # YAML 1.2 floats: E: 5e4 is a number
+
     try:
-        raw = yaml.safe_load(p.read_text())
+        raw = load_yaml(p.read_text())
     except yaml.YAMLError as e:
         raise InputError(p, f"not valid YAML: {e}") from None
     if not isinstance(raw, dict) or not raw:

@@ -25,7 +25,7 @@ import json
 from dataclasses import dataclass, field
 
 from . import config as C
-from .errors import ConfigError
+from .errors import ConfigError, PhysGSError
 
 RESULTS = "results"
 
@@ -211,28 +211,63 @@ def previous_step(step: str) -> str:
 
 
 class Registry:
-    """All plans the workflow knows (every scene x every ablation), indexed by artifact id,
-    so that a rule can find the config belonging to an id in its output path."""
+    """The plans the workflow knows (every scene x every ablation), indexed by artifact id,
+    so that a rule can find the config belonging to an id in its output path.
+
+    Plans are made on first use, one scene (with all its ablations) at a time, so a scene
+    file with a problem blocks only its own targets: the problem is recorded and raised when
+    one of them is asked for (``snakemake`` for other scenes, ``-n`` included, is unaffected).
+    """
 
     def __init__(self, cfg: dict, scenes: list[str]):
         self.cfg = cfg
+        self.scenes = list(scenes)
         self.plans: dict[str, Plan] = {}
+        self.problems: dict[str, PhysGSError] = {}  # target -> why it has no plan
         self.by_id: dict[tuple[str, str, str], Plan] = {}
-        for scene in scenes:
-            for abl in [None, *sorted(cfg.get("ablations") or {})]:
-                plan = make_plan(cfg, scene, abl)
-                self.plans[plan.target] = plan
-                for kind, ident in plan.ids.items():
-                    self.by_id.setdefault((scene, kind, ident), plan)
+        self._loaded: set[str] = set()
+
+    def ablations(self) -> list[str]:
+        return sorted(self.cfg.get("ablations") or {})
+
+    def _load(self, scene: str) -> None:
+        if scene in self._loaded:
+            return
+        self._loaded.add(scene)
+        for abl in [None, *self.ablations()]:
+            target = scene if abl is None else f"{scene}/ablations/{abl}"
+            try:
+                plan = make_plan(self.cfg, scene, abl)
+            except PhysGSError as e:
+                self.problems[target] = e
+                continue
+            self.plans[target] = plan
+            for kind, ident in plan.ids.items():
+                self.by_id.setdefault((scene, kind, ident), plan)
+
+    def _check_scene(self, scene: str) -> None:
+        if scene not in self.scenes:
+            raise ConfigError("scene", f"unknown scene '{scene}': no scene file {C.scene_path(self.cfg, scene)}; "
+                                       f"known scenes: {', '.join(self.scenes) or '(none)'}")
 
     def plan(self, target: str) -> Plan:
-        if target not in self.plans:
-            raise ConfigError("target", f"unknown target '{target}'; scenes/ablations known: {', '.join(sorted(self.plans))}")
+        scene, abl = parse_target(target)
+        self._check_scene(scene)
+        if abl is not None and abl not in self.ablations():
+            raise ConfigError("ablations", f"unknown ablation '{abl}' in target '{target}'; ablations: "
+                                           f"{', '.join(self.ablations()) or '(none configured)'}")
+        self._load(scene)
+        if target in self.problems:
+            raise self.problems[target]
         return self.plans[target]
 
     def for_id(self, scene: str, kind: str, ident: str) -> Plan:
+        self._check_scene(scene)
+        self._load(scene)
         try:
             return self.by_id[(scene, kind, ident)]
         except KeyError:
+            if scene in self.problems:  # the scene file itself is broken
+                raise self.problems[scene] from None
             raise ConfigError(kind, f"no current config of scene '{scene}' gives {kind} id '{ident}' "
                               "(the path is stale: the config changed since it was requested)") from None

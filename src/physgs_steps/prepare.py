@@ -19,6 +19,16 @@ the quaternion of R, SH coefficients stay in the source frame, extras are kept. 
 centre must then lie inside the domain less a wall margin of 3 cells of a 64^3 grid;
 otherwise a ConfigError names ``transform.extent`` or ``transform.center`` and the numbers
 (or, with ``prepare.drop_outside``, those gaussians are dropped).
+
+Sanity checks that cost nothing here and save a whole simulation that would render an
+empty video (:func:`check_appearance`, :func:`check_resolution`):
+
+* every gaussian with opacity below 1/255 (nothing would be drawn): InputError;
+* gaussians whose standard deviation exceeds ``MAX_SIM_SIGMA`` (1 domain unit, twice the
+  scene's largest side; e.g. a scale of 1e30) would each cover the whole view: they are
+  dropped and logged (``dropped.oversized``); when that is every gaussian, InputError;
+* centres so far from the origin that float32 (the type of 3DGS positions) cannot resolve
+  the scene (a capture 1e9 units away spanning a few units): InputError saying so.
 """
 from __future__ import annotations
 
@@ -36,6 +46,10 @@ from .scene_io import load_gaussians, save_gaussians
 MARGIN_GRID = 64  # the wall margin is MARGIN_CELLS cells of a grid of this many cells per axis
 MARGIN_CELLS = 3
 MARGIN = MARGIN_CELLS / MARGIN_GRID
+ALPHA_VISIBLE = 1.0 / 255.0  # below this opacity a gaussian is never drawn (both renderers)
+MAX_SIM_SIGMA = 1.0  # domain units: a gaussian wider than this covers the whole view
+FLOAT32_STEPS = 100  # the scene must span at least this many float32 steps of its coordinates
+FAR_FROM_ORIGIN = 1e3  # a scene without extent this far out is probably quantised (the message says so)
 BUILTIN_PREFIX = "builtin:"
 _AXES = {"x": 0, "y": 1, "z": 2, 0: 0, 1: 1, 2: 2}
 
@@ -216,9 +230,14 @@ def fit_transform(means: np.ndarray, tcfg: dict, trim_quantile: float, source="s
     else:
         lo, hi = rotated.min(axis=0), rotated.max(axis=0)
     size = float((hi - lo).max())
-    if not size > 1e-12 * max(1.0, float(np.abs(rotated).max())):
+    far = float(np.abs(rotated).max())
+    if not size > 1e-12 * max(1.0, far):
+        hint = ("" if far < FAR_FROM_ORIGIN else f"; they lie {far:.3g} units from the origin, where float32 positions "
+                f"resolve only {float(np.spacing(np.float32(far))):.3g} units: re-export the capture centred near the "
+                "origin")
         raise InputError(source, f"the {len(rotated)} gaussian centres have no spatial extent "
-                                 f"(trimmed box {lo.tolist()}..{hi.tolist()}); cannot scale the scene")
+                                 f"(trimmed box {lo.tolist()}..{hi.tolist()}); cannot scale the scene{hint}")
+    check_resolution(means, size, source)
     return SceneTransform(R=R, scale=float(tcfg["extent"]) / size, src_center=R.T @ ((lo + hi) / 2),
                           sim_center=np.asarray(tcfg["center"], dtype=np.float64))
 
@@ -240,7 +259,8 @@ def normalise_scene(scene: GaussianScene, tcfg: dict, pcfg: dict, source="scene"
         (``{"min", "max"}`` of the kept centres in the source frame).
     """
     log = log or logging.getLogger("physgs.prepare")
-    dropped = {"crop_box": 0, "min_opacity": 0, "outside": 0}
+    dropped = {"crop_box": 0, "min_opacity": 0, "outside": 0, "oversized": 0}
+    check_appearance(scene, source, log)
     if tcfg["crop_box"] is not None:
         lo, hi = np.asarray(tcfg["crop_box"], dtype=np.float64)
         keep = ((scene.means >= lo) & (scene.means <= hi)).all(axis=1)
@@ -259,6 +279,19 @@ def normalise_scene(scene: GaussianScene, tcfg: dict, pcfg: dict, source="scene"
         scene = scene.subset(keep) if dropped["min_opacity"] else scene
     tf = fit_transform(scene.means, tcfg, pcfg["trim_quantile"], source)
     sim = tf.to_sim_scene(scene)
+    sigma = np.exp(sim.log_scales.astype(np.float64)).max(axis=1)  # [N] largest std, domain units
+    huge = ~(sigma <= MAX_SIM_SIGMA)
+    if huge.any():
+        biggest = float(np.max(np.exp(scene.log_scales.astype(np.float64))))
+        if huge.all():
+            raise InputError(source, f"every gaussian is larger than the whole scene (standard deviations up to "
+                                     f"{biggest:.3g} source units, {float(sigma.max()):.3g} x the simulation domain): "
+                                     "the scale_0..2 properties must hold the natural log of the standard deviation "
+                                     "(INRIA 3DGS convention), not linear scales")
+        dropped["oversized"] = int(huge.sum())
+        log.warning("dropped %d gaussians wider than the domain (standard deviation above %g domain units, largest "
+                    "%.3g source units): each would cover the whole view", dropped["oversized"], MAX_SIM_SIGMA, biggest)
+        sim, scene = sim.subset(~huge), scene.subset(~huge)
     outside = ((sim.means < MARGIN) | (sim.means > 1.0 - MARGIN)).any(axis=1)
     if outside.any():
         if not pcfg["drop_outside"]:
@@ -271,6 +304,31 @@ def normalise_scene(scene: GaussianScene, tcfg: dict, pcfg: dict, source="scene"
         sim = sim.subset(~outside)
         scene = scene.subset(~outside)
     return sim, tf, {"dropped": dropped, "bounds_src": _bounds(scene.means)}
+
+
+def check_appearance(scene: GaussianScene, source, log: logging.Logger) -> None:
+    """Raise when no gaussian of ``scene`` would be visible (every opacity below 1/255)."""
+    op = scene.opacities
+    invisible = op < ALPHA_VISIBLE
+    if invisible.all():
+        raise InputError(source, f"every one of the {scene.n} gaussians has opacity below 1/255 (largest "
+                                 f"{float(op.max()):.3g}): nothing would be drawn. The `opacity` property of a 3DGS "
+                                 "file holds logits (opacity = sigmoid(value)); a file storing linear opacities in "
+                                 "[0, 1] must be converted")
+    if invisible.any():
+        log.info("%d of %d gaussians have opacity below 1/255 (never drawn)", int(invisible.sum()), scene.n)
+
+
+def check_resolution(means: np.ndarray, size: float, source) -> None:
+    """Raise when float32 centres ``means`` [N, 3] are too far from the origin to resolve a
+    scene of ``size`` (source units): at |x| = 1e9 float32 steps are 64 units."""
+    far = float(np.abs(np.asarray(means, np.float64)).max())
+    step = float(np.spacing(np.float32(far)))
+    if size < FLOAT32_STEPS * step:
+        raise InputError(source, f"the gaussian centres lie up to {far:.3g} source units from the origin, where "
+                                 f"float32 positions (3DGS files) resolve only {step:.3g} units, but the scene spans "
+                                 f"{size:.3g} units: its positions are quantised. Re-export the capture centred near "
+                                 "the origin (subtract its centre from x, y, z)")
 
 
 def _raise_outside(means: np.ndarray, tcfg: dict, source) -> None:

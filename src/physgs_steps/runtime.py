@@ -12,8 +12,11 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
+import re
 import resource
+import socket
 import sys
 import tempfile
 import time
@@ -101,31 +104,138 @@ class Timer:
             self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
 
 
+def _host_tag() -> str:
+    """This machine's short host name, reduced to [A-Za-z0-9_] (part of temporary file names)."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname().split(".")[0]) or "host"
+
+
+def file_mode() -> int:
+    """The mode a new file gets under the process umask (0o644 under umask 022): atomic
+    writes create their temporary file with mkstemp, which is always 0o600, and set this."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    old = os.umask(0o022)  # no /proc: read it by setting it (and put it back at once)
+    os.umask(old)
+    return 0o666 & ~old
+
+
+_PART = r"\.(?:(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)\.)?[A-Za-z0-9_]+\.part"
+
+
+def part_pattern(path: str | os.PathLike) -> re.Pattern:
+    """The names of temporary files of :func:`atomic_path` for ``path``:
+    ``.<name>.<host>-<pid>.<random>.part<suffix>`` (and the older ``.<name>.<random>.part<suffix>``)."""
+    path = Path(path)
+    return re.compile(rf"^\.{re.escape(path.name)}{_PART}{re.escape(path.suffix)}$")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def clean_stale_parts(path: str | os.PathLike, log: logging.Logger | None = None) -> list[Path]:
+    """Remove temporary files that an earlier, killed write of ``path`` left beside it.
+
+    A stage owns its outputs while it runs (Snakemake's lock), so a part file of the same
+    output is left over from a killed run, unless its name says that a process still alive
+    on this machine writes it (``physgs stage`` run by hand beside the workflow): those stay.
+    Returns the removed paths.
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    pat, host, me = part_pattern(path), _host_tag(), os.getpid()
+    removed = []
+    for p in path.parent.iterdir():
+        m = pat.match(p.name)
+        if not m or not p.is_file():
+            continue
+        if m.group("pid") and m.group("host") == host and int(m.group("pid")) != me and _alive(int(m.group("pid"))):
+            continue
+        try:
+            p.unlink()
+        except FileNotFoundError:
+            continue
+        removed.append(p)
+        if log is not None:
+            log.info("removed %s, left by an earlier run of this stage that did not finish", p)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` only on success.
 
-    A crash or an exception leaves no half-written artifact behind.
+    A crash or an exception leaves no half-written artifact behind (a kill can leave the
+    temporary file, which :func:`clean_stale_parts` removes when the stage runs again). The
+    artifact gets the permissions of a new file under the umask (:func:`file_mode`), so that
+    collaborators on a shared file system can read results.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{_host_tag()}-{os.getpid()}.", suffix=".part" + path.suffix,
+                               dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
+    mode = file_mode()
+    os.chmod(tmp_path, mode)
     try:
         yield tmp_path
+        os.chmod(tmp_path, mode)  # in case the writer replaced the file
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
 
 
+def strict_json(obj: Any) -> tuple[Any, dict[str, str]]:
+    """``obj`` with every non-finite float (inf, -inf, NaN) replaced by None, and
+    {JSON pointer: "inf" | "-inf" | "nan"} of the replacements (numpy values converted)."""
+    found: dict[str, str] = {}
+
+    def walk(o: Any, ptr: str) -> Any:
+        if isinstance(o, dict):
+            return {k: walk(v, f"{ptr}/{str(k).replace('~', '~0').replace('/', '~1')}") for k, v in o.items()}
+        if isinstance(o, (list, tuple)):
+            return [walk(v, f"{ptr}/{i}") for i, v in enumerate(o)]
+        if type(o).__module__ == "numpy":
+            o = _json_default(o)
+            return walk(o, ptr) if isinstance(o, (list, float)) else o
+        if isinstance(o, float) and not math.isfinite(o):
+            found[ptr or "/"] = "nan" if math.isnan(o) else ("inf" if o > 0 else "-inf")
+            return None
+        return o
+
+    return walk(obj, ""), found
+
+
+def json_text(obj: Any, **kwargs) -> str:
+    """Strict JSON text (RFC 8259: no Infinity/NaN) of ``obj``; non-finite numbers become null,
+    and a dict gets the key ``nonfinite`` listing them ({JSON pointer: "inf" | "-inf" | "nan"})."""
+    clean, found = strict_json(obj)
+    if found and isinstance(clean, dict):
+        clean["nonfinite"] = {"description": "numbers that were not finite, written as null", "values": found}
+    kwargs.setdefault("default", _json_default)
+    return json.dumps(clean, allow_nan=False, **kwargs)
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> None:
-    """Write JSON atomically (sorted keys, numpy scalars converted)."""
+    """Write strict JSON atomically (sorted keys, numpy scalars converted; :func:`json_text`)."""
+    text = json_text(obj, indent=2, sort_keys=True)
     with atomic_path(path) as tmp:
         with open(tmp, "w") as f:
-            json.dump(obj, f, indent=2, sort_keys=True, default=_json_default)
-            f.write("\n")
+            f.write(text + "\n")
 
 
 def read_json(path: str | os.PathLike) -> Any:
@@ -168,6 +278,9 @@ def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, lo
     """
     log = get_logger(name, log_path)
     log.info("stage %s: inputs %s", name, {k: str(v) for k, v in inputs.items()})
+    for v in outputs.values():
+        for p in v if isinstance(v, (list, tuple)) else [v]:
+            clean_stale_parts(p, log)
     _reset_cuda_peak()
     t0 = time.perf_counter()
     try:
@@ -179,7 +292,9 @@ def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, lo
     except Exception:
         log.error("stage %s crashed:\n%s", name, traceback.format_exc())
         _remove_outputs(outputs, log)
-        raise SystemExit(1) from None
+        exc = SystemExit(1)
+        exc.physgs_crash = True  # not a PhysGSError: the warm worker (worker.py) does not serve on
+        raise exc from None
     summary.setdefault("seconds", round(time.perf_counter() - t0, 3))
     summary.setdefault("peak_rss_mb", round(peak_rss_mb(), 1))
     cp = cuda_peak_mb()

@@ -124,6 +124,14 @@ def save_gaussians(scene: GaussianScene, path) -> None:
 
 # ---------------------------------------------------------------------------- PLY reading
 def _load_ply(path: Path, log: logging.Logger) -> GaussianScene:
+    n, dtype, start = _ply_layout(path)
+    data = np.fromfile(path, dtype=dtype, count=n, offset=start)
+    return _scene_from_vertices(path, data, log)
+
+
+def _ply_layout(path: Path) -> tuple[int, np.dtype, int]:
+    """(vertex count, vertex dtype, byte offset of the vertex data) of a 3DGS ``.ply``, after
+    checking the header and that the file holds exactly the declared vertex data."""
     header, data_start = _read_header(path)
     elements = _parse_header(path, header)
     vertex_offset, (n, props) = _locate_vertex(path, elements)
@@ -138,9 +146,34 @@ def _load_ply(path: Path, log: logging.Logger) -> GaussianScene:
         raise InputError(path, f"truncated: the header declares {n} vertices of {dtype.itemsize} bytes "
                                f"({need} bytes) but only {max(have, 0)} bytes of vertex data follow")
     if have > need and elements[-1][0] == "vertex":
-        log.warning("%s: %d unexpected bytes after the vertex data were ignored", path, have - need)
-    data = np.fromfile(path, dtype=dtype, count=n, offset=start)
-    return _scene_from_vertices(path, data, log)
+        extra = have - need
+        whole = f" ({extra // dtype.itemsize} more whole vertices)" if extra >= dtype.itemsize else ""
+        raise InputError(path, f"{extra} bytes follow the {n} vertices the header declares{whole}: the header's "
+                               "'element vertex' count is smaller than the data (or the file has trailing "
+                               "bytes); fix the count in the header")
+    return n, dtype, start
+
+
+def probe(path) -> dict:
+    """What a scene file holds, without reading its gaussians: ``{"format": "ply" | "splat",
+    "n": gaussian count, "bytes": file size}``. Raises InputError on a missing file, an
+    unknown extension or a malformed header / size (the checks of :func:`load_gaussians`
+    that need no data)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found" if not path.exists() else "not a regular file")
+    suffix = path.suffix.lower()
+    size = path.stat().st_size
+    if suffix == ".ply":
+        n, _, _ = _ply_layout(path)
+        return {"format": "ply", "n": n, "bytes": size}
+    if suffix == ".splat":
+        if size == 0 or size % SPLAT_RECORD.itemsize:
+            raise InputError(path, f"size {size} bytes is not a positive multiple of the {SPLAT_RECORD.itemsize}-byte "
+                                   ".splat record (truncated or not a .splat file)")
+        return {"format": "splat", "n": size // SPLAT_RECORD.itemsize, "bytes": size}
+    raise InputError(path, f"unknown 3DGS file format '{path.suffix or '(no extension)'}': "
+                           "expected an INRIA .ply or an antimatter15 .splat")
 
 
 def _read_header(path: Path) -> tuple[list[str], int]:
@@ -267,6 +300,7 @@ def _columns(data: np.ndarray, names: list[str]) -> np.ndarray:
 def _scene_from_vertices(path: Path, data: np.ndarray, log: logging.Logger) -> GaussianScene:
     names = list(data.dtype.names)
     _check_finite(path, data)
+    _check_float32_range(path, data)
     n = data.shape[0]
     m = sum(1 for p in names if p.startswith("f_rest_"))
     k = m // 3 + 1
@@ -311,6 +345,23 @@ def _check_finite(path: Path, data: np.ndarray) -> None:
             problems.append(f"'{p}': {int(bad.sum())} values (first at index {int(np.argmax(bad))})")
     if problems:
         raise InputError(path, "non-finite (NaN/Inf) values in " + "; ".join(problems))
+
+
+def _check_float32_range(path: Path, data: np.ndarray) -> None:
+    """Float64 properties are stored as float32: raise naming every field whose finite values
+    overflow float32 (they would become inf after the cast), its count and first index."""
+    big = float(np.finfo(np.float32).max)
+    problems = []
+    for p in data.dtype.names:
+        if data.dtype[p].kind != "f" or data.dtype[p].itemsize <= 4:
+            continue
+        bad = np.abs(data[p]) > big
+        if bad.any():
+            problems.append(f"'{p}': {int(bad.sum())} values (first at index {int(np.argmax(bad))}, "
+                            f"{float(data[p][np.argmax(bad)]):.4g})")
+    if problems:
+        raise InputError(path, f"double-precision values beyond the float32 range (|x| > {big:.4g}) in "
+                               + "; ".join(problems) + ": they cannot be represented in single precision")
 
 
 def _checked_quats(path: Path, q: np.ndarray, log: logging.Logger, quantized: bool = False) -> np.ndarray:

@@ -19,7 +19,6 @@ simulate with :mod:`physgs_steps.mpm` under ``cfg["sim"]`` (sim.schema.yaml) and
 """
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import h5py
 import numpy as np
 
 from .errors import ConfigError, InputError, SimulationError
-from .runtime import atomic_path, peak_rss_mb, read_json_input
+from .runtime import atomic_path, json_text, peak_rss_mb, read_json_input
 from .mpm.dynamics import Dynamics, describe_counts
 from .mpm.materials import Material
 from .mpm.runner import RunResult, run_frames
@@ -228,9 +227,9 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
                 h.attrs["dt"] = float(s["dt"])
                 if substitute and k == substitute[0]:
                     h.attrs["substitute_for"] = np.array(substitute[1], np.int64)
-            f.attrs["params"] = json.dumps(params)
-            f.attrs["sim_config"] = json.dumps(_sim_config(cfg, solver, stepper), default=str)
-            f.attrs["stats"] = json.dumps(stats)
+            f.attrs["params"] = json_text(params)
+            f.attrs["sim_config"] = json_text(_sim_config(cfg, solver, stepper), default=str)
+            f.attrs["stats"] = json_text(stats)
     log.info("forward_sim: %s, %d substeps in %.1f s (+%.1f s first substep); key frames %s -> %s",
              "stable" if res.stable else "UNSTABLE", stats["substeps_total"], res.step_seconds,
              res.first_substep_seconds, sorted(snaps), outputs["keyframes"])
@@ -268,9 +267,9 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
                 raise SimulationError(res.message)
             stats = _stats(res, solver, {"n_frames": n_frames, "n_visible": Nv,
                                          "write_seconds": round(res.callback_seconds, 3)})
-            f.attrs["stats"] = json.dumps(stats)
-            f.attrs["params"] = json.dumps(params)
-            f.attrs["sim_config"] = json.dumps(_sim_config(cfg, solver, stepper), default=str)
+            f.attrs["stats"] = json_text(stats)
+            f.attrs["params"] = json_text(params)
+            f.attrs["sim_config"] = json_text(_sim_config(cfg, solver, stepper), default=str)
     log.info("final_sim: %d frames, %d substeps in %.1f s (+%.1f s first substep, %.1f s writing) -> %s",
              n_frames, stats["substeps_total"], res.step_seconds, res.first_substep_seconds, res.callback_seconds,
              outputs["frames"])

@@ -1,4 +1,9 @@
 # Helpers shared by all rules: config validation, the artifact plan, resources.
+#
+# Problems stop Snakemake with one line on stderr ("physgs: <what is wrong, where, the valid
+# choices>") and exit status 1, never a traceback. A broken scene file stops only the
+# targets of that scene, when one is requested (plans are made on first use);
+# `physgs check` lists every problem of every scene file at once.
 import sys
 from pathlib import Path
 
@@ -6,12 +11,64 @@ sys.path.insert(0, str(Path(workflow.basedir) / "src"))
 
 from physgs_steps import config as C
 from physgs_steps import plan as P
+from physgs_steps.errors import ConfigError, PhysGSError
 
-C.validate_config(config)
 
-SCENES = sorted(p.stem for p in Path(config["scenes_dir"]).glob("*.yaml"))
+def fail(err):
+    """Stop with a one-line message and exit status 1 (at parse time or in an input function)."""
+    print(f"physgs: {err}", file=sys.stderr)
+    sys.exit(1)
+
+
+def config_layers():
+    """[(name, dict)] in the order Snakemake applied them: config/config.yaml, each
+    --configfile, then --config (for naming where a bad value came from)."""
+    settings = getattr(workflow, "config_settings", None)
+    layers = []
+    for f in ["config/config.yaml", *[str(f) for f in (getattr(settings, "configfiles", None) or [])]]:
+        try:
+            layers.append((f, C.read_yaml(f)))
+        except PhysGSError:
+            pass
+    layers.append(("--config", dict(getattr(settings, "config", None) or {})))
+    return layers
+
+
+try:
+    C.validate_config(config)
+except ConfigError as e:
+    import re
+
+    key = e.key if e.key != "<root>" else ""
+    unknown = re.search(r"'([^']+)' (?:was|were) unexpected", e.problem)  # an unknown key: where was it set?
+    if unknown:
+        key = f"{key}.{unknown.group(1)}" if key else unknown.group(1)
+    fail(ConfigError(e.key, e.problem, (C.origin_of(key, config_layers()) if key else None) or e.source))
+
+SCENES, NO_SCENES = C.list_scenes(config)  # NO_SCENES: why there are none (a missing folder...)
 REG = P.Registry(config, SCENES)
 DEVICE = config["device"]
+
+
+def scene_problem(e):
+    """The message of a plan's problem; a scene file's own problem points at `physgs check`."""
+    in_file = getattr(e, "source", None) or getattr(e, "path", None)
+    return f"{e} (physgs check lists every problem of every scene file)" if in_file else str(e)
+
+
+def target_plan(target):
+    """The plan of a target (``bear``, ``bear/ablations/no_bgdo``), or stop with its problem."""
+    try:
+        return REG.plan(target)
+    except PhysGSError as e:
+        fail(scene_problem(e))
+
+
+def main_scene():
+    """`snakemake --cores 1` alone: the main job (bear), or the first scene of a custom scenes_dir."""
+    if not SCENES:
+        fail(NO_SCENES)
+    return "bear" if "bear" in SCENES else SCENES[0]
 
 
 wildcard_constraints:
@@ -25,13 +82,16 @@ wildcard_constraints:
 
 
 def plan_path(target, kind, step=None):
-    return REG.plan(target).path(kind, step)
+    return target_plan(target).path(kind, step)
 
 
 def plan_for(w, kind):
     """The plan that owns the artifact id in this job's output path."""
     ident = getattr(w, f"{kind}_id")
-    return REG.for_id(w.scene, kind, ident)
+    try:
+        return REG.for_id(w.scene, kind, ident)
+    except PhysGSError as e:
+        fail(scene_problem(e))
 
 
 def stage_cfg(kind, stage):
@@ -43,19 +103,32 @@ def gpu_count(stage):
     return 1 if DEVICE == "cuda" and stage in config["resources"]["gpu_stages"] else 0
 
 
-def res(stage, key):
-    r = config["resources"]["stages"].get(stage, {})
-    return r.get(key, config["resources"]["default"][key])
+def job_request(stage, w):
+    """mem_mb and runtime of a job: its rule, the configured material backend and the size of
+    its scene (physgs_steps.resources; config section `resources`)."""
+    from physgs_steps import resources
+
+    if stage == "vlm_params":  # the plan of this params id (an ablation may change the backend)
+        plan = plan_for(w, "params")
+    else:
+        plan = target_plan(getattr(w, "target", None) or w.scene)
+    n = resources.scene_gaussians(plan.cfgs["prepare"]["scene"])
+    backend = plan.cfgs["params"]["materials"]["backend"] if stage == "vlm_params" else None
+    return resources.request(config["resources"], stage, n, backend)
+
+
+def mem_mb(stage):
+    return lambda wildcards: job_request(stage, wildcards)["mem_mb"]
 
 
 def runtime_min(stage):
-    return lambda wildcards, attempt: int(res(stage, "runtime") * attempt)
+    return lambda wildcards, attempt: job_request(stage, wildcards)["runtime"] * attempt
 
 
 # ---- input functions of the rules
 
 def prepare_inputs(w):
-    sc = REG.plan(w.scene).cfgs["prepare"]["scene"]
+    sc = target_plan(w.scene).cfgs["prepare"]["scene"]
     kind, path = C.resolve_source(sc)
     return {"source": str(path)} if kind == "file" else {}
 
@@ -72,7 +145,7 @@ def bgdo_inputs(w):
 
 
 def render_inputs(w):
-    plan = REG.plan(w.target)
+    plan = target_plan(w.target)
     ins = {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform")}
     cam = plan.cfgs["render"]["scene"].get("camera") or {}
     if cam.get("mode") == "cameras_json":  # an INRIA training run's cameras.json
@@ -81,5 +154,13 @@ def render_inputs(w):
 
 
 def report_jobs(w):
-    plan = REG.plan(w.target)
+    plan = target_plan(w.target)
     return [{"rule": r, "step": s, "benchmark": plan.benchmark_path(r, s)} for r, s in plan.jobs()]
+
+
+def stop_worker():
+    """End the warm stage worker of this run's code (worker.py); it would end by itself when idle."""
+    from physgs_steps import worker as W
+
+    if W.shutdown():
+        print("physgs: stopped the warm stage worker", file=sys.stderr)

@@ -11,7 +11,7 @@ rule cluster:
     benchmark:
         "results/{scene}/benchmarks/cluster-{cluster_id}.tsv"
     resources:
-        mem_mb=res("cluster", "mem_mb"),
+        mem_mb=mem_mb("cluster"),
         runtime=runtime_min("cluster"),
     script:
         "../scripts/cluster.py"
@@ -32,7 +32,7 @@ rule fill:
     benchmark:
         "results/{scene}/benchmarks/fill-{fill_id}.tsv"
     resources:
-        mem_mb=res("fill", "mem_mb"),
+        mem_mb=mem_mb("fill"),
         runtime=runtime_min("fill"),
     script:
         "../scripts/fill.py"

@@ -14,7 +14,7 @@ rule vlm_params:
     benchmark:
         "results/{scene}/benchmarks/vlm_params-{params_id}.tsv"
     resources:
-        mem_mb=res("vlm_params", "mem_mb"),
+        mem_mb=mem_mb("vlm_params"),
         runtime=runtime_min("vlm_params"),
         gpu=gpu_count("vlm_params"),
     script:

@@ -6,13 +6,13 @@ rule render:
         contact_sheet="results/{target}/contact_sheet.png",
         report="results/{target}/render.json",
     params:
-        cfg=lambda w: REG.plan(w.target).cfgs["render"],
+        cfg=lambda w: target_plan(w.target).cfgs["render"],
     log:
         "results/{target}/logs/render.log",
     benchmark:
         "results/{target}/benchmarks/render.tsv"
     resources:
-        mem_mb=res("render", "mem_mb"),
+        mem_mb=mem_mb("render"),
         runtime=runtime_min("render"),
         gpu=gpu_count("render"),
     script:
@@ -22,18 +22,19 @@ rule render:
 rule metrics:
     input:
         video="results/{target}/video.mp4",
-        frames=lambda w: REG.plan(w.target).path("final"),
-        params=lambda w: REG.plan(w.target).path("params"),
+        frames=lambda w: target_plan(w.target).path("final"),
+        params=lambda w: target_plan(w.target).path("params"),
     output:
         metrics="results/{target}/metrics.json",
     params:
-        cfg=lambda w: REG.plan(w.target).cfgs["metrics"],
+        cfg=lambda w: target_plan(w.target).cfgs["metrics"],
     log:
         "results/{target}/logs/metrics.log",
     benchmark:
         "results/{target}/benchmarks/metrics.tsv"
     resources:
-        mem_mb=res("metrics", "mem_mb"),
+        mem_mb=mem_mb("metrics"),
         runtime=runtime_min("metrics"),
+        gpu=gpu_count("metrics"),   # 0 unless "metrics" is in resources.gpu_stages (a VideoPhy2 rater on a GPU)
     script:
         "../scripts/metrics.py"

@@ -10,7 +10,7 @@ rule forward_sim:
     benchmark:
         "results/{scene}/benchmarks/forward_sim-{sim_id}-{step}.tsv"
     resources:
-        mem_mb=res("forward_sim", "mem_mb"),
+        mem_mb=mem_mb("forward_sim"),
         runtime=runtime_min("forward_sim"),
         gpu=gpu_count("forward_sim"),
     script:
@@ -31,7 +31,7 @@ rule bgdo_update:
     benchmark:
         "results/{scene}/benchmarks/bgdo_update-{sim_id}-{step}.tsv"
     resources:
-        mem_mb=res("bgdo_update", "mem_mb"),
+        mem_mb=mem_mb("bgdo_update"),
         runtime=runtime_min("bgdo_update"),
         gpu=gpu_count("bgdo_update"),
     script:
@@ -50,7 +50,7 @@ rule final_sim:
     benchmark:
         "results/{scene}/benchmarks/final_sim-{sim_id}-{step}.tsv"
     resources:
-        mem_mb=res("final_sim", "mem_mb"),
+        mem_mb=mem_mb("final_sim"),
         runtime=runtime_min("final_sim"),
         gpu=gpu_count("final_sim"),
     script:

@@ -1,5 +1,4 @@
 """Snakemake adapter for the bgdo_update stage (logic in physgs_steps.bgdo)."""
-from physgs_steps.bgdo import run as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("bgdo_update", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("bgdo_update", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

@@ -1,5 +1,4 @@
 """Snakemake adapter for the cluster stage (logic in physgs_steps.cluster)."""
-from physgs_steps.cluster import run as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("cluster", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("cluster", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

@@ -1,5 +1,4 @@
 """Snakemake adapter for the fill stage (logic in physgs_steps.fill)."""
-from physgs_steps.fill import run as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("fill", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("fill", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

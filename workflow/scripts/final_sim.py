@@ -1,5 +1,4 @@
 """Snakemake adapter for the final_sim stage (logic in physgs_steps.simulate)."""
-from physgs_steps.simulate import run_final as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("final_sim", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("final_sim", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

@@ -1,5 +1,4 @@
 """Snakemake adapter for the forward_sim stage (logic in physgs_steps.simulate)."""
-from physgs_steps.simulate import run_forward as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("forward_sim", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("forward_sim", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

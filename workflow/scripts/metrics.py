@@ -1,5 +1,4 @@
-"""Snakemake adapter for the metrics stage (logic in physgs_steps.metrics)."""
-from physgs_steps.metrics import run as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+"""Snakemake adapter for the metrics stage (logic in physgs_steps.metrics.stage)."""
+from physgs_steps.worker import dispatch
 
-run_stage("metrics", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("metrics", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

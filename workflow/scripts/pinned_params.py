@@ -1,5 +1,4 @@
 """Snakemake adapter for pinned_params (logic in physgs_steps.params.stage.run_pinned)."""
-from physgs_steps.params.stage import run_pinned as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("pinned_params", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("pinned_params", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

@@ -1,5 +1,4 @@
 """Snakemake adapter for the prepare stage (logic in physgs_steps.prepare)."""
-from physgs_steps.prepare import run as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("prepare", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("prepare", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

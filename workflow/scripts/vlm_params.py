@@ -1,5 +1,4 @@
 """Snakemake adapter for the vlm_params stage (logic in physgs_steps.params.stage)."""
-from physgs_steps.params.stage import run as stage
-from physgs_steps.runtime import run_stage, snakemake_io
+from physgs_steps.worker import dispatch
 
-run_stage("vlm_params", stage, *snakemake_io(snakemake))  # noqa: F821 (injected by Snakemake)
+dispatch("vlm_params", snakemake)  # noqa: F821 (injected by Snakemake); runs in the warm worker where configured

@@ -9,8 +9,8 @@ import torch
 
 from ..errors import ConfigError
 from .torch_step import GridSpec, instance_table, log_E_from_instances
-from .update import (assemble_frames, bgdo_signals, bgdo_update, reference_scales, solver_ceiling, static_stress,
-                     unstable_run_info)
+from .update import (assemble_frames, bgdo_signals, bgdo_update, first_contact, forward_frames_needed, mark_unloaded,
+                     reference_scales, solver_ceiling, static_stress, unstable_run_info)
 
 # ----------------------------------------------------------------------------- key frames & files
 def key_frame_indices(key_frames, n_frames: int) -> list[int]:
@@ -201,6 +201,7 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
     def keep_first(frames_):
         for kf in frames_:
             first.setdefault("x", kf["x"])
+            first.setdefault("v", kf["v"])
             yield {**kf, **{q: kf[q][keep] for q in ("x", "v", "C", "F")}} if fixed_k else kf
 
     frames = bgdo_signals(keep_first(iter_keyframes(inputs["keyframes"], meta["frames"])), log_E, table, grid, scales,
@@ -219,6 +220,8 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
                     "collapsed under its load; missing key frames count as such states)", info["missing"],
                     info["cfl"], float(bcfg["cfl_limit"]), info["fate"])
     frames = assemble_frames(frames, meta, info)
+    silent = [k for k in mark_unloaded(frames, sstress, scales, float(bcfg.get("min_load", 0.01))) if not rigid[k]]
+    contact = _warn_no_signal(silent, first, meta, params["instances"], grid, cfg, log)
     t2 = time.perf_counter()
     new_log_E, records = bgdo_update(log_E, frames, scales, bcfg,
                                      limits={"ceiling": ceiling, "static_stress": sstress, "fate": info["fate"],
@@ -241,6 +244,16 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
                  "n/a" if rec["G"] is None else f"{rec['G']:.4f}", rec["eta"], rec["E_hat"], rec["delta_target"],
                  rec["rule"], " [clipped to max_step]" if rec["clipped"] else "",
                  " [held at the solver ceiling]" if rec["capped_by_ceiling"] else "")
+    for rec in records:
+        if rec.get("in_band_after") is False and rec.get("in_band_before") is not False:
+            lo, hi = rec["band"]
+            why = (f"the forward run exploded and the solver integrates at most E_cap = {rec['ceiling']:.3g} Pa at "
+                   f"this resolution (sim.max_substeps = {rec_sim.get('max_substeps')}, grid spacing dx = "
+                   f"{grid.domain_size / grid.n_grid:.3g} m): raise sim.max_substeps or lower sim.n_grid to keep "
+                   "the material's stiffness" if str(rec["rule"]).startswith("exploded") or rec["capped_by_ceiling"]
+                   else "check the scene's loads and the material choice")
+            log.warning("instance %d (%s): E %.4g -> %.4g Pa leaves %s's range [%.3g, %.3g] Pa: %s", rec["label"],
+                        rec["name"], rec["E_before"], rec["E_after"], rec["material"], lo, hi, why)
     cuda_peak = torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else None
     seconds = {"read": round(t1 - t0, 4), "signals": round(t2 - t1, 4), "total": round(time.perf_counter() - t0, 4)}
     record = {
@@ -254,6 +267,7 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
         "forward_stable": info["stable"], "missing_key_frames": info["missing"], "forward_cfl": info["cfl"],
         "instance_fates": info["fate"], "delta_broken": info["delta_broken"],
         "rigid_skipped": [records[k]["name"] for k in range(len(rigid)) if rigid[k]],
+        "min_load": bcfg.get("min_load", 0.01), "no_signal": {str(k): v for k, v in contact.items()},
         "key_frames": [fr[1] for fr in meta["frames"]], "grid": {"n_grid": grid.n_grid, "domain_size": grid.domain_size,
                                                                   "gravity": list(grid.gravity), "boundary": grid.boundary},
         "instances": records, "seconds": seconds,
@@ -272,6 +286,46 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
     return {"iteration": iteration, "E_before": [r["E_before"] for r in records],
             "E_after": [r["E_after"] for r in records], "seconds_parts": seconds,
             "cuda_peak_mb": record["cuda_peak_mb"]}
+
+
+def _warn_no_signal(silent: list[int], first: dict, meta: dict, instances: list[dict], grid, cfg: dict, log) -> dict:
+    """WARNING per instance whose key frames carry no load (E stays), with the estimated time of
+    its first contact and the forward frames that would reach it. Returns {k: record}."""
+    import copy
+
+    from .. import config as C
+
+    out = {}
+    if not silent:
+        return out
+    rec = meta.get("sim_config") or {}
+    sim = rec.get("sim") if isinstance(rec.get("sim"), dict) else (cfg.get("sim") or {})
+    dyn = rec.get("dynamics") if isinstance(rec.get("dynamics"), dict) else (cfg.get("scene") or {}).get("dynamics")
+    dyn = C.validate(copy.deepcopy(dyn or {}), C.load_schema("scene_dynamics.schema.yaml"), "scene", "dynamics")
+    floor = max(float((dyn.get("ground") or {}).get("height", 0.0)), 3.0 / grid.n_grid)
+    fps = float(sim.get("fps", 30.0))
+    stored = [fr for fr in meta["frames"] if fr[1] > 0]
+    times = ", ".join(f"{fr[2]:.3g}" for fr in stored)
+    n_forward = (meta.get("stats") or {}).get("forward_frames")
+    by_label = {int(i["label"]): i for i in instances}
+    for k in silent:
+        inst = by_label[k]
+        c = first_contact(first.get("x"), first.get("v"), meta["label"], k, grid, floor)
+        r = {"key_frame_times_s": [fr[2] for fr in stored], "contact": c}
+        hint = ""
+        if c is not None:
+            need = forward_frames_needed(c["time_s"], fps, cfg["bgdo"].get("key_frames", [0.0, 0.5, 1.0]))
+            r["forward_frames_needed"] = need
+            hint = (f"; it is {c['height_m']:.3g} m above {c['support']} and reaches it after about {c['time_s']:.3g} s: "
+                    f"set bgdo.forward_frames to at least {need} (now {n_forward}), or null (= sim.n_frames)")
+        else:
+            hint = "; give the forward simulation more frames (bgdo.forward_frames, null = sim.n_frames)"
+        log.warning("instance %d (%s): no key frame after frame 0 (t = %s s) carries a load (mean stress below "
+                    "bgdo.min_load = %g of its static stress): the object has not touched anything yet, so the key "
+                    "frames say nothing about its stiffness; E is left unchanged (%.4g Pa)%s", k, inst.get("name"),
+                    times, float(cfg["bgdo"].get("min_load", 0.01)), float(inst["E"]), hint)
+        out[k] = r
+    return out
 
 
 def _check_config(bcfg: dict) -> None:

@@ -403,6 +403,75 @@ def assemble_frames(frames: list[list[dict]], meta: dict, info: dict) -> list[li
     return out
 
 
+# ----------------------------------------------------------------------------- key frames without load
+def mark_unloaded(frames: list[list[dict]], static: np.ndarray, scales: Scales, min_load: float) -> list[int]:
+    """Mark the key frames after frame 0 in which an instance is not loaded (``unloaded``).
+
+    An instance is loaded in a key frame when its mean ||tau|| is at least ``min_load`` x its
+    static stress rho |g| H (``static`` [K], Pa), or its mean deformation at least ``min_load``
+    x its delta_target (a collapsed, far too soft object is barely stressed but very deformed),
+    or when it has exploded particles. An unloaded frame (the object still falling or flying:
+    stress and deformation both about 1e-6 of those scales) carries no information about E and
+    is left out of that instance's update. Returns the instances that have key frames after frame 0 but no loaded
+    one: :func:`bgdo_update` leaves their E unchanged (rule ``no_signal``)."""
+    silent = []
+    K = len(frames[0]) if frames else 0
+    for k in range(K):
+        later = [rows[k] for rows in frames if rows[k]["frame"] > 0 and rows[k].get("weight", 1) > 0]
+        for r in later:
+            if r.get("n_exploded") or r.get("tau_norm") is None:
+                continue  # exploded (a signal: too stiff) or a state the failure rules supply
+            ref = float(static[k]) if static is not None else 0.0
+            stressed = ref > 0 and r["tau_norm"] >= min_load * ref
+            deformed = r["delta"] is not None and r["delta"] >= min_load * scales.delta_target(k)
+            if not (stressed or deformed):
+                r["unloaded"] = True
+        if later and all(r.get("unloaded") for r in later):
+            silent.append(k)
+    return silent
+
+
+def first_contact(x0, v0, label, k: int, grid: "GridSpec", floor: float) -> dict | None:
+    """When instance ``k`` first touches what lies below it, from its state at frame 0.
+
+    x0, v0  # [P, 3] positions (domain units) and velocities (domain units/s) at frame 0;
+    label  # [P]; ``floor``: height of the floor in domain units (the ground collider, or the
+    domain's bottom wall). The support is the floor or the top of another instance under it
+    (overlapping boxes in x and y). Free fall along -z from the lowest point with the mean
+    vertical velocity. Returns {"height_m", "support", "time_s"} or None (gravity not along -z,
+    no particles, or the instance rises away)."""
+    g = np.asarray(grid.gravity, np.float64)
+    gz = -g[2]
+    if gz <= 0 or np.linalg.norm(g[:2]) > 1e-6 * gz:
+        return None
+    x0, v0, label = np.asarray(x0, np.float64), np.asarray(v0, np.float64), np.asarray(label)
+    ok = np.isfinite(x0).all(axis=1) & np.isfinite(v0).all(axis=1)
+    mine = ok & (label == k)
+    if not mine.any():
+        return None
+    lo, hi = x0[mine].min(axis=0), x0[mine].max(axis=0)
+    support, what = floor, "the floor"
+    for j in np.unique(label[ok & (label != k)]):
+        o = x0[ok & (label == j)]
+        olo, ohi = o.min(axis=0), o.max(axis=0)
+        if (olo[:2] <= hi[:2]).all() and (ohi[:2] >= lo[:2]).all() and ohi[2] <= lo[2] and ohi[2] > support:
+            support, what = float(ohi[2]), f"instance {int(j)}"
+    L = grid.domain_size
+    h = max(float(lo[2] - support), 0.0) * L
+    vz = float(v0[mine, 2].mean()) * L
+    disc = vz * vz + 2.0 * gz * h
+    t = (vz + math.sqrt(disc)) / gz
+    return {"height_m": h, "support": what, "time_s": t}
+
+
+def forward_frames_needed(t_contact: float, fps: float, key_frames) -> int:
+    """Forward frames T for which the first key frame after frame 0 (fraction f of T - 1) comes
+    0.05 s after ``t_contact`` (the load builds within a few frames of the impact)."""
+    fracs = [float(f) for f in key_frames if float(f) > 0]
+    f = min(fracs) if fracs else 1.0
+    return int(math.ceil((t_contact + 0.05) * fps / f)) + 1
+
+
 # ----------------------------------------------------------------------------- update
 def eta_value(E: float, pressure: float, bcfg: dict) -> tuple[float, float]:
     """(eta, E_hat): the guidance weight for modulus E (Pa) and reference pressure (Pa)."""
@@ -414,9 +483,11 @@ def eta_value(E: float, pressure: float, bcfg: dict) -> tuple[float, float]:
 
 def _instance_step(frames_k: list[dict], eta: float, bcfg: dict, sdelta: float, target: float) -> tuple[float, list]:
     """(G, per-frame terms) for one instance from its per-frame records."""
-    usable = [r for r in frames_k if r["g_tilde"] is not None and r.get("weight", 1) > 0]
+    usable = [r for r in frames_k if r["g_tilde"] is not None and r.get("weight", 1) > 0 and not r.get("unloaded")]
     if not usable or any(r.get("no_evidence") for r in frames_k):
         return math.nan, []
+    if any(r.get("unloaded") for r in frames_k) and not any(r["frame"] > 0 for r in usable):
+        return math.nan, []  # no key frame after the rest state carries a load
     W = float(sum(r.get("weight", 1) for r in usable))
 
     def stress_term(x):  # eta * x with eta * inf = inf for eta > 0
@@ -490,10 +561,13 @@ def bgdo_update(log_E, frames: list[list[dict]], scales: Scales, bcfg: dict,
                        note="rigid instance (a rigid body or static geometry): its E does not enter the simulation; "
                             "left unchanged")
         elif math.isnan(G):
-            why = ("the forward run became unstable (other instances) before any key frame after frame 0"
+            unloaded = any(r.get("unloaded") for r in fk)
+            why = ("no key frame after frame 0 carries a load (bgdo.min_load): the object had not touched anything "
+                   "yet" if unloaded else
+                   "the forward run became unstable (other instances) before any key frame after frame 0"
                    if any(r.get("no_evidence") for r in fk) else "no particle of this instance in any key frame")
             rec.update(G=None, G_unclipped=None, clipped=False, E_after=E, log_E_after=float(log_E[k]),
-                       note=f"{why}: E left unchanged", rule="unchanged")
+                       note=f"{why}: E left unchanged", rule="no_signal" if unloaded else "unchanged")
         elif (fates[k] == "exploded" and bcfg.get("failure_rule", "static_load") == "static_load"
               and cap is not None and cap < E):
             s = 0.0 if sstress is None else float(sstress[k])

@@ -40,13 +40,27 @@ and colliders), colliders (static geometry, where boundaries sit), rigid (rigid 
 timestep (CFL substeps), stability (checks and messages), runner (frame loop), backend
 (Taichi start-up).
 """
-from .colliders import StaticGeometry
-from .dynamics import Dynamics
-from .materials import Material, preset
-from .runner import RunResult, run_frames
-from .solver import MPMSolver
-from .stability import Thresholds
-from .timestep import TimeStepper
+import importlib
+
+# Names are imported on first use (PEP 562), so that e.g. ``physgs_steps.mpm.timestep`` (BGDO)
+# does not pull in Taichi: a stage process imports only what it uses.
+_EXPORTS = {
+    "Dynamics": "dynamics", "StaticGeometry": "colliders", "Material": "materials", "preset": "materials",
+    "RunResult": "runner",
+    "run_frames": "runner", "MPMSolver": "solver", "Thresholds": "stability", "TimeStepper": "timestep",
+}
 
 __all__ = ["Dynamics", "Material", "MPMSolver", "RunResult", "StaticGeometry", "Thresholds", "TimeStepper", "preset",
            "run_frames"]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

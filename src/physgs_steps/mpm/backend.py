@@ -29,7 +29,8 @@ def _current_prog():
 def _init(arch) -> str:
     ti.init(arch=arch, default_fp=ti.f32, default_ip=ti.i32, offline_cache=True,
             offline_cache_file_path=str(cache_dir("taichi")), log_level=ti.WARN,
-            cpu_max_num_threads=os.cpu_count() or 1)
+            cpu_max_num_threads=os.cpu_count() or 1,
+            kernel_profiler=os.environ.get("PHYSGS_TI_PROFILER") == "1")  # benchmarks/bench_mpm.py --profile
     from taichi.lang import impl
 
     got = impl.current_cfg().arch

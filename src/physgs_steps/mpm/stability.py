@@ -127,12 +127,21 @@ def _advice(f: Failure, materials: list[Material], stepper: TimeStepper, plan: S
         return (f"The time step was above the CFL limit (CFL {plan.cfl:.2f} > sim.cfl = {stepper.cfl:g}) because "
                 f"sim.max_substeps = {stepper.max_substeps} caps the substeps: '{ms.name}' (E = {ms.E:.3g} Pa, "
                 f"density {ms.density:g} kg/m^3) has a wave speed of {ms.wave_speed:.3g} m/s and needs about {need} "
-                f"substeps per frame at n_grid {n_grid}. Lower its E to at most {e_ok:.3g} Pa, or raise "
+                f"substeps per frame at n_grid {n_grid} (grid spacing dx = sim.domain_size / n_grid = {dx:.3g} m; "
+                f"a smaller object needs proportionally more). Lower its E to at most {e_ok:.3g} Pa, or raise "
                 f"sim.max_substeps to {need} (slower), or lower sim.n_grid.")
     if f.kind == "j_low":
-        return (f"The material cannot carry the load (its own weight, an impact or a prescribed motion): raise E "
-                f"of '{m.name}' (now {m.E:.3g} Pa; try {10 * m.E:.3g}), lower its density ({m.density:g} kg/m^3), "
-                f"or give it a plasticity model that limits compression (j_clamp, drucker_prager).")
+        msg = (f"The material cannot carry the load (its own weight, an impact or a prescribed motion): raise E "
+               f"of '{m.name}' (now {m.E:.3g} Pa; try {10 * m.E:.3g}), lower its density ({m.density:g} kg/m^3), "
+               f"or give it a plasticity model that limits compression (j_clamp, drucker_prager).")
+        if stepper.mode == "adaptive":
+            e_ok = m.max_E_for_wave_speed(stepper.cfl * dx * stepper.max_substeps / stepper.frame_dt)
+            if 10 * m.E > e_ok:
+                msg += (f" But sim.max_substeps = {stepper.max_substeps} integrates '{m.name}' only up to E = "
+                        f"{e_ok:.3g} Pa at grid spacing dx = {dx:.3g} m (sim.domain_size / n_grid): raise "
+                        f"sim.max_substeps (about {stepper.substeps_needed(dx, m.wave_speed * 10 ** 0.5)} for "
+                        "10x its E) or lower sim.n_grid.")
+        return msg
     if f.kind == "j_high":
         return (f"The material is torn or inflated apart: raise E of '{m.name}' (now {m.E:.3g} Pa), lower the "
                 "velocities and forces in the scene's dynamics, or use a plasticity model (j_clamp caps J).")
@@ -150,8 +159,8 @@ def cfl_note(materials: list[Material], stepper: TimeStepper, dx: float) -> str 
     need = stepper.substeps_needed(dx, stiff.cfl_speed)
     if stepper.mode == "adaptive" and need > stepper.max_substeps:
         return (f"'{stiff.name}' (E = {stiff.E:.3g} Pa, wave speed {stiff.wave_speed:.3g} m/s) needs {need} substeps "
-                f"per frame for CFL {stepper.cfl:g}; sim.max_substeps = {stepper.max_substeps} caps it, so the run "
-                f"steps at CFL {stepper.cfl * need / stepper.max_substeps:.2f}")
+                f"per frame for CFL {stepper.cfl:g} at grid spacing dx = {dx:.3g} m; sim.max_substeps = "
+                f"{stepper.max_substeps} caps it, so the run steps at CFL {stepper.cfl * need / stepper.max_substeps:.2f}")
     if stepper.mode == "fixed":
         cfl = stepper.frame_dt / stepper.fixed_substeps * stiff.cfl_speed / dx
         if cfl > stepper.cfl:

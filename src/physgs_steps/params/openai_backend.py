@@ -6,15 +6,21 @@ API key is read from the environment variable named by ``materials.openai.api_ke
 (not sent when unset, as local servers need none).  Transport failures (connection refused,
 timeouts, HTTP 429 and 5xx) are retried ``retries`` times with exponential backoff; other
 HTTP errors fail at once.  Images travel as PNG data URLs.
+
+``timeout_s`` is a real deadline for each attempt (connect, send, the whole answer), not
+urllib's per-read socket timeout, which a server sending a byte every few seconds never
+trips: a timer shuts the connection's socket when the deadline passes (:class:`_Deadline`).
 """
 from __future__ import annotations
 
 import base64
+import http.client
 import io
 import json
 import logging
 import os
 import socket
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -48,6 +54,60 @@ def to_openai_messages(messages: list[dict]) -> list[dict]:
         else:
             out.append({"role": m["role"], "content": m["content"]})
     return out
+
+
+class _Deadline:
+    """A wall-clock limit on one HTTP exchange: when it passes, a timer shuts the socket of the
+    connection, which ends a blocked send or receive at once."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self.end = time.monotonic() + seconds
+        self.fired = False
+        self._timer: threading.Timer | None = None
+
+    def remaining(self) -> float:
+        return max(self.end - time.monotonic(), 1e-3)
+
+    def arm(self, sock) -> None:
+        self._timer = threading.Timer(self.remaining(), self._fire, args=(sock,))
+        self._timer.daemon = True
+        self._timer.start()
+
+    def _fire(self, sock) -> None:
+        self.fired = True
+        try:
+            sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+
+    def cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+
+    def opener(self) -> urllib.request.OpenerDirector:
+        """A urllib opener (proxies and redirects as usual) whose connections obey this deadline."""
+        deadline = self
+
+        class HTTPConn(http.client.HTTPConnection):
+            def connect(self):
+                super().connect()
+                deadline.arm(self.sock)
+
+        class HTTPSConn(http.client.HTTPSConnection):
+            def connect(self):
+                super().connect()
+                deadline.arm(self.sock)
+
+        class HTTPHandler(urllib.request.HTTPHandler):
+            def http_open(self, req):
+                return self.do_open(HTTPConn, req)
+
+        class HTTPSHandler(urllib.request.HTTPSHandler):
+            def https_open(self, req):
+                return self.do_open(HTTPSConn, req, context=self._context)
+
+        return urllib.request.build_opener(HTTPHandler, HTTPSHandler)
 
 
 class OpenAIBackend:
@@ -97,9 +157,15 @@ class OpenAIBackend:
             if attempt:
                 time.sleep(self.backoff * 2 ** (attempt - 1))
             req = urllib.request.Request(self.url, data=data, headers=headers, method="POST")
+            deadline = _Deadline(self.timeout)
             try:
-                with urllib.request.urlopen(req, timeout=self.timeout) as resp:
-                    body = resp.read()
+                try:
+                    with deadline.opener().open(req, timeout=deadline.remaining()) as resp:
+                        body = resp.read()
+                finally:
+                    deadline.cancel()
+                if deadline.fired:
+                    raise TimeoutError(f"no complete answer within materials.openai.timeout_s = {self.timeout:g} s")
             except urllib.error.HTTPError as e:
                 detail = e.read()[:300].decode("utf-8", "replace") if e.fp else ""
                 last = f"HTTP {e.code} from {self.url}: {detail}".strip()
@@ -107,8 +173,11 @@ class OpenAIBackend:
                     self.log.warning("openai backend: %s (attempt %d of %d)", last, attempt + 1, self.retries + 1)
                     continue
                 raise BackendError(last) from None
-            except (urllib.error.URLError, socket.timeout, TimeoutError, ConnectionError) as e:
+            except (urllib.error.URLError, socket.timeout, TimeoutError, ConnectionError, http.client.HTTPException,
+                    OSError) as e:
                 reason = getattr(e, "reason", e)
+                if deadline.fired:
+                    reason = f"no complete answer within materials.openai.timeout_s = {self.timeout:g} s"
                 last = f"cannot reach {self.url}: {reason}"
                 self.log.warning("openai backend: %s (attempt %d of %d)", last, attempt + 1, self.retries + 1)
                 continue

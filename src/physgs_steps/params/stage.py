@@ -44,7 +44,7 @@ def fully_pinned(scene_cfg: dict, n_instances: int | None = None) -> bool:
     if not entries or (n_instances is not None and len(entries) != n_instances):
         return False
     kb = materials_kb.load_kb()
-    return all(is_fully_pinned(check_pins(e, i, kb)) for i, e in enumerate(entries))
+    return all(is_fully_pinned(check_pins(e, i, kb, scene_cfg.get("_path"))) for i, e in enumerate(entries))
 
 
 def pinned_params(scene_cfg: dict, clusters: dict | None = None, kb: dict | None = None) -> dict:
@@ -61,20 +61,38 @@ def pinned_params(scene_cfg: dict, clusters: dict | None = None, kb: dict | None
     kb = kb or materials_kb.load_kb()
     entries = scene_cfg.get("instances") or []
     prompt = scene_cfg.get("prompt") or ""
+    src = scene_cfg.get("_path")
     index = _label_config_index(clusters, len(entries)) if clusters else list(range(len(entries)))
     if any(ci is None for ci in index):
-        raise ConfigError("scene.instances", f"cluster label {index.index(None)} matched no scene instance, so it has no pins")
+        raise ConfigError("scene.instances", _unmatched_message(clusters, index.index(None), entries), src)
     matches = prior_mod.match_scene(prompt, [entries[ci] for ci in index], kb)
     out = []
     for label, ci in enumerate(index):
-        pins = check_pins(entries[ci], ci, kb)
+        pins = check_pins(entries[ci], ci, kb, src)
         if not is_fully_pinned(pins):
             raise ConfigError(f"scene.instances[{ci}]", "not fully pinned: give `material`, or elasticity, plasticity, "
-                                                        "E, nu, density and the plasticity model's parameters")
+                                                  "E, nu, density and the plasticity model's parameters", src)
         values, notes = merge_pins(materials_kb.material_params(matches[label].material, kb), pins, kb)
         out.append(_record(label, entries[ci], ci, values, check_velocity(entries[ci], ci),
                            {"source": "pinned", "backend": "pinned", "pinned": sorted(pins), "clamped": notes}))
     return _document(out, "pinned", prompt, kb, None)
+
+
+def _unmatched_message(clusters: dict, label: int, entries: list) -> str:
+    """What to change when cluster ``label`` matched no entry of a fully pinned scene."""
+    rec = next((r for r in clusters.get("instances", []) if r.get("label") == label), {})
+    n, lo, hi = rec.get("count"), rec.get("bbox_min"), rec.get("bbox_max")
+    box = f" (box {[round(v, 3) for v in lo]}..{[round(v, 3) for v in hi]})" if lo and hi else ""
+    msg = (f"the clustering found {clusters.get('n_instances')} objects but the scene lists {len(entries)}; cluster "
+           f"label {label} ({n} gaussians{box}) matched no scene instance, so it has no pins. Either list it as an instance "
+           "of its own (with `at` inside that box and its material)")
+    near = rec.get("unmatched") or {}
+    if near:
+        nl = near["nearest_label"]
+        msg += (f", or make it part of label {nl}: cluster.merge: [[{min(nl, label)}, {max(nl, label)}]], or "
+                f"cluster.eps above the gap of {near['gap']:.3g} (now {clusters.get('eps')}), or "
+                f"cluster.fragment_fraction above {near['fraction']:.3g} (now {clusters.get('fragment_fraction')})")
+    return msg + " (under `config: {cluster: ...}` in the scene file)"
 
 
 # --------------------------------------------------------------------------- stage
@@ -96,7 +114,7 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     k = len(index)
     if labels.size and int(labels.max()) >= k:
         raise InputError(inputs["labels"], f"label {int(labels.max())} but clusters.json has {k} instances")
-    pins = {ci: check_pins(entries[ci], ci, kb) for ci in set(index) if ci is not None}
+    pins = {ci: check_pins(entries[ci], ci, kb, scene_cfg.get("_path")) for ci in set(index) if ci is not None}
     velocities = {ci: check_velocity(entries[ci], ci) for ci in pins}
     matches = prior_mod.match_scene(prompt, [entries[ci] if ci is not None else None for ci in index], kb,
                                     mcfg.get("default_material", "jelly"))

@@ -36,19 +36,27 @@ class AnswerError(ValueError):
 
 
 # --------------------------------------------------------------------------- pins
-def check_pins(entry: dict, index: int, kb: dict) -> dict:
+def check_pins(entry: dict, index: int, kb: dict, source: str | None = None) -> dict:
     """The pinned values of scene instance ``index`` in canonical form.
 
     Args:
         entry: one item of the scene's ``instances`` list.
         index: its position (for error messages).
         kb: knowledge base.
+        source: the scene file, named in errors.
     Returns:
         dict with the pinned keys of :data:`PIN_KEYS` only (material resolved to its KB
         name, model names canonical, numbers as float).
     Raises:
-        ConfigError naming ``scene.instances[index].<key>``.
+        ConfigError naming ``scene.instances[index].<key>`` (and ``source``).
     """
+    try:
+        return _check_pins(entry, index, kb)
+    except ConfigError as e:
+        raise ConfigError(e.key, e.problem, e.source or source) from None
+
+
+def _check_pins(entry: dict, index: int, kb: dict) -> dict:
     if not isinstance(entry, dict):
         raise ConfigError(f"scene.instances[{index}]", f"must be a mapping, got {type(entry).__name__}")
     key = f"scene.instances[{index}]"

@@ -11,6 +11,10 @@ Only call these functions after :func:`cuda_ready` returned True.
 """
 from __future__ import annotations
 
+import os
+import sys
+from pathlib import Path
+
 import torch
 
 from .cameras import Camera, stack_cameras
@@ -18,10 +22,25 @@ from .deform import Gaussians
 from .sh import view_colors
 
 
+def extension_dir() -> str:
+    """Where gsplat's JIT-compiled CUDA extension is built and found again: one folder per
+    machine and user (``$PHYSGS_MACHINE_CACHE``, default ``~/.cache/physgs``), per Python, CUDA
+    and torch version, whatever the workspace, XDG_CACHE_HOME or project.  An explicit
+    TORCH_EXTENSIONS_DIR wins.  A gsplat wheel built with its CUDA code
+    (``tools/build_wheelhouse.py --gsplat-cuda-arch``) needs none."""
+    if os.environ.get("TORCH_EXTENSIONS_DIR"):
+        return os.environ["TORCH_EXTENSIONS_DIR"]
+    base = Path(os.environ.get("PHYSGS_MACHINE_CACHE") or Path.home() / ".cache" / "physgs")
+    tag = f"py{sys.version_info.major}{sys.version_info.minor}_cu{(torch.version.cuda or 'none').replace('.', '')}" \
+          f"_torch{torch.__version__.split('+')[0]}"
+    return str(base / "torch_extensions" / tag)
+
+
 def cuda_ready() -> tuple[bool, str]:
     """(True, "") when CUDA and gsplat's CUDA rasteriser are usable, else (False, reason)."""
     if not torch.cuda.is_available():
         return False, "torch.cuda.is_available() is False"
+    os.environ["TORCH_EXTENSIONS_DIR"] = extension_dir()  # read by gsplat's JIT build (torch.utils.cpp_extension)
     try:
         from gsplat import rasterization  # noqa: F401
         from gsplat.cuda._backend import _C  # loads (or JIT-compiles, once) the CUDA extension

@@ -35,6 +35,8 @@ from .deform import NONFINITE_POLICIES, SourceMap, check_frame, deform, rest_gau
 from .renderer import Renderer, RenderSettings, resolve_backend
 from .video import FrameDir, VideoWriter, contact_sheet, sheet_indices, write_png
 
+NEAR_FRACTION = 1e-3  # automatic near plane: this fraction of the scene size
+FAR_FACTOR = 1e3  # automatic far plane: this many scene sizes beyond the farthest camera's distance
 CLIP_WARN_FRACTION = 0.05  # > 5 % of the centres behind the near plane: clipped (inside the box: error)
 COVERED_ALPHA = 0.5  # a pixel counts as covered at accumulated alpha above this
 
@@ -102,13 +104,37 @@ def camera_config(scene_cfg: dict) -> dict:
 
 
 def settings_from_config(rcfg: dict) -> RenderSettings:
+    """Renderer settings; automatic (null) near/far planes are set by :func:`clip_planes`."""
     if rcfg["on_nonfinite"] not in NONFINITE_POLICIES:
         raise ConfigError("render.on_nonfinite", f"must be one of {NONFINITE_POLICIES}")
-    if rcfg["far"] <= rcfg["near"]:
-        raise ConfigError("render.far", f"far ({rcfg['far']}) must exceed near ({rcfg['near']})")
-    return RenderSettings(background=tuple(float(v) for v in rcfg["background"]), sh_degree=int(rcfg["sh_degree"]),
-                          near=float(rcfg["near"]), far=float(rcfg["far"]), eps2d=float(rcfg["eps2d"]),
-                          compositor=rcfg["cpu_compositor"])
+    near, far = rcfg.get("near"), rcfg.get("far")
+    if near is not None and far is not None and far <= near:
+        raise ConfigError("render.far", f"far ({far}) must exceed near ({near})")
+    s = RenderSettings(background=tuple(float(v) for v in rcfg["background"]), sh_degree=int(rcfg["sh_degree"]),
+                       eps2d=float(rcfg["eps2d"]), compositor=rcfg["cpu_compositor"])
+    s.near = float(near) if near is not None else s.near
+    s.far = float(far) if far is not None else s.far
+    return s
+
+
+def scene_size(transform) -> float:
+    """S: the largest side of the scene's trimmed bounding box in source units (extent / scale)."""
+    return float(transform.record.get("extent", 0.5)) / float(transform.scale)
+
+
+def clip_planes(rcfg: dict, size: float, cams: list, center) -> tuple[float, float]:
+    """(near, far) in source units: the configured values, or for null 1e-3 S and
+    1e3 S + the largest camera distance from ``center`` (S = ``size``)."""
+    near = rcfg.get("near")
+    far = rcfg.get("far")
+    near = NEAR_FRACTION * size if near is None else float(near)
+    if far is None:
+        reach = max(float(np.linalg.norm(c.position - np.asarray(center, np.float64))) for c in cams)
+        far = FAR_FACTOR * size + reach
+    if far <= near:
+        raise ConfigError("render.far", f"far ({far:.4g}) must exceed near ({near:.4g}) (source units; the scene is "
+                                        f"{size:.4g} units across): set render.near/far to null to follow the scene")
+    return near, float(far)
 
 
 def image_size(rcfg: dict, ccfg: dict) -> tuple[int, int]:
@@ -258,16 +284,19 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     renderer = Renderer(backend, settings)
     dev = renderer.device
 
-    smap = SourceMap.from_transform(load_transform(inputs["transform"]))
+    transform = load_transform(inputs["transform"])
+    smap = SourceMap.from_transform(transform)
     scene = load_gaussians(inputs["scene"], log)
     frames = FinalFrames(inputs["frames"], scene.n)
     try:
-        return _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, frames, dev, log, t_start)
+        return _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, frames, dev, log, t_start,
+                           scene_size(transform))
     finally:
         frames.close()
 
 
-def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, frames, dev, log, t_start) -> dict:
+def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, frames, dev, log, t_start,
+                size: float) -> dict:
     rest = rest_gaussians(scene, smap, dev)
     index = torch.from_numpy(frames.index).to(dev)
     static_rows = np.setdiff1d(np.arange(scene.n), frames.index)
@@ -281,6 +310,9 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     cams, cam_record = build_cameras(
         ccfg, rcfg, sel, lambda: motion_bounds(frames, sel, smap, rest.means, static_rows),
         inputs.get("cameras"), log)
+    renderer.settings.near, renderer.settings.far = clip_planes(rcfg, size, cams, smap.src_center)
+    log.info("clipping planes near %.4g, far %.4g source units (scene size %.4g units%s)", renderer.settings.near,
+             renderer.settings.far, size, "" if rcfg.get("near") is not None else ", near/far follow it")
     width, height = cams[0].width, cams[0].height
     if width % 2 or height % 2:
         log.info("image %dx%d is padded to even size for H.264 (yuv420p)", width, height)
@@ -350,6 +382,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
         "frames_rendered": len(sel), "frames_total": frames.n_frames, "every_nth": int(rcfg["every_nth"]),
         "width": width, "height": height, "fps": rcfg["fps"], "sh_degree": degree,
         "camera": cam_record,
+        "clip": {"near": renderer.settings.near, "far": renderer.settings.far, "scene_size": size},
         "coverage": {"min": min(coverage), "mean": float(np.mean(coverage)), "max": max(coverage)},
         "empty_frames": empty, "clipped_frames": clipped, "hidden_nonfinite": hidden,
         "render_seconds": round(t_render, 3), "render_frames_per_second": round(len(sel) / max(t_render, 1e-9), 2),

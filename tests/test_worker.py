@@ -1,0 +1,113 @@
+"""The warm stage worker (physgs_steps.worker): policy, one worker serving several jobs in
+order, failures, shutdown, and the Snakemake adapter's fallback.  CPU only and fast: the jobs
+are ``stage_report`` jobs (a table from benchmark files)."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from physgs_steps import worker as W
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="the worker uses UNIX sockets and /proc")
+
+
+@pytest.fixture()
+def wdir(tmp_path, monkeypatch):
+    d = tmp_path / "w"
+    monkeypatch.setenv("PHYSGS_WORKER_DIR", str(d))
+    yield d
+    W.shutdown()  # never leave a worker behind
+
+
+def _bench(tmp_path: Path, name: str, seconds: float) -> str:
+    p = tmp_path / f"{name}.tsv"
+    p.write_text(f"s\th:m:s\tmax_rss\n{seconds}\t0:00:01\t12.5\n")
+    return str(p)
+
+
+def _report_job(tmp_path: Path, tag: str):
+    jobs = [{"rule": "prepare", "step": None, "benchmark": _bench(tmp_path, f"prepare{tag}", 1.5)},
+            {"rule": "render", "step": None, "benchmark": _bench(tmp_path, f"render{tag}", 2.5)}]
+    out = tmp_path / f"report{tag}.tsv"
+    return {}, {"table": str(out)}, {"jobs": jobs}, str(tmp_path / f"report{tag}.log"), out
+
+
+def test_policy(monkeypatch):
+    real_probe = W.has_nvidia_gpu
+    monkeypatch.delenv("PHYSGS_WORKER", raising=False)
+    assert W.wants_worker("render", {"enabled": True, "stages": ["render"]})
+    assert not W.wants_worker("fill", {"enabled": True, "stages": ["render"]})
+    assert not W.wants_worker("render", {"enabled": False})
+    monkeypatch.setattr(W, "has_nvidia_gpu", lambda: False)
+    assert not W.wants_worker("render", {"enabled": "auto"})
+    monkeypatch.setattr(W, "has_nvidia_gpu", lambda: True)
+    assert W.wants_worker("render", {"enabled": "auto"})
+    monkeypatch.setenv("PHYSGS_WORKER", "0")
+    assert not W.wants_worker("render", {"enabled": True})
+    monkeypatch.setenv("PHYSGS_WORKER", "1")
+    assert W.wants_worker("final_sim", {"enabled": False})  # default stages
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "")
+    assert not real_probe()
+
+
+def test_key_follows_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("PHYSGS_CACHE_DIR", str(tmp_path / "a"))
+    a = W.worker_key()
+    assert W.worker_key() == a
+    monkeypatch.setenv("PHYSGS_CACHE_DIR", str(tmp_path / "b"))
+    assert W.worker_key() != a
+
+
+def test_one_worker_serves_jobs_in_order_then_stops(wdir, tmp_path, capfd):
+    ins, outs, cfg, log, out = _report_job(tmp_path, "1")
+    assert W.run_job("stage_report", ins, outs, cfg, log, idle_seconds=60) == 0
+    first = W.ping()
+    assert first and first["jobs"] == 1
+    assert "prepare\t\t1.500" in out.read_text()
+    err = capfd.readouterr().err
+    assert "stage stage_report done" in err and "warm worker" in err  # the stage's log reaches the job
+    ins, outs, cfg, log, out2 = _report_job(tmp_path, "2")
+    assert W.run_job("stage_report", ins, outs, cfg, log) == 0
+    second = W.ping()
+    assert second["pid"] == first["pid"] and second["jobs"] == 2  # the same warm process
+    assert out2.exists() and Path(log).read_text().count("done in") == 1
+    assert W.shutdown() and W.ping() is None
+    assert not W.socket_path().exists()
+
+
+def test_crash_is_reported_and_ends_the_worker(wdir, tmp_path):
+    ins, outs, cfg, log, out = _report_job(tmp_path, "c")
+    cfg = {"jobs": [{"rule": "prepare"}]}  # no benchmark key: the stage crashes (KeyError)
+    assert W.run_job("stage_report", ins, outs, cfg, log) == 1
+    assert not out.exists()
+    assert "crashed" in Path(log).read_text()
+    assert W.ping() is None  # a crash ends the worker; the next job starts a fresh one
+    ins, outs, cfg, log, out = _report_job(tmp_path, "d")
+    assert W.run_job("stage_report", ins, outs, cfg, log) == 0 and out.exists()
+
+
+def test_dispatch_in_process_when_disabled(wdir, tmp_path, monkeypatch):
+    monkeypatch.setenv("PHYSGS_WORKER", "0")
+    ins, outs, cfg, log, out = _report_job(tmp_path, "p")
+    smk = SimpleNamespace(input=SimpleNamespace(items=lambda: ins.items()),
+                          output=SimpleNamespace(items=lambda: outs.items()),
+                          params=SimpleNamespace(cfg=cfg), log=[log], config={"worker": {"enabled": True}})
+    W.dispatch("stage_report", smk)
+    assert out.exists()
+    assert W.ping() is None  # no worker was started
+    assert "stage_report" in W.ENTRIES and json.loads(json.dumps(W.ENTRIES))
+
+
+def test_worker_module_imports_only_the_standard_library():
+    import subprocess
+
+    code = ("import sys, physgs_steps.worker; heavy = [m for m in ('torch', 'taichi', 'yaml', 'h5py', 'scipy') "
+            "if m in sys.modules]; print(heavy)")
+    env = dict(os.environ, PYTHONPATH=str(Path(W.__file__).resolve().parents[1]))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert r.stdout.strip() == "[]", r.stdout + r.stderr
