@@ -155,3 +155,41 @@ def test_rigid_flags_and_wall_margin_errors():
     with pytest.raises(InputError, match="every instance is fixed"):
         sol = MPMSolver([STONE.with_(fixed=True)], n_grid=32, backend="cpu")
         sol.set_particles(box([0.4, 0.4, 0.4], [0.5, 0.5, 0.5], 1 / 64), np.full(216, 1 / 64 ** 3), np.zeros(216, int))
+
+
+def test_rigid_plate_compresses_a_jelly_column_by_its_weight():
+    """Two-way coupling, static: a free rigid steel plate resting on a jelly column (nu = 0, on
+    a frictionless ground) compresses it by exactly what its weight predicts.  With nu = 0 the
+    fixed-corotated column is in uniaxial stress, Cauchy sigma = E (lambda - 1), so between the
+    bottom and top particle layers (s/2 and h - s/2 above the base) the shortening is
+    [(h - s) p + rho g ((h - s/2)^2 - (s/2)^2) / 2] / E, p = the plate's weight per area."""
+    s = 1 / 64
+    g0 = 0.125
+    h, t, w = 0.25, 0.0625, 0.25
+    lo = [0.5 - w / 2, 0.5 - w / 2]
+    xj = box(lo + [g0], [0.5 + w / 2, 0.5 + w / 2, g0 + h], s)
+    xp = box(lo + [g0 + h], [0.5 + w / 2, 0.5 + w / 2, g0 + h + t], s)
+    x = np.r_[xj, xp]
+    mat = np.r_[np.zeros(len(xj), int), np.ones(len(xp), int)]
+    jelly = JELLY.with_(nu=0.0, E=5.0e4)
+    plate = STONE.with_(name="plate", density=7850.0)
+    dyn = Dynamics.from_config({"ground": {"height": g0, "friction": 0.0, "surface": "separate"}, "damping": 8.0})
+    sol = MPMSolver([jelly, plate], n_grid=32, dynamics=dyn, backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), mat)
+    dt = 0.4 * (1 / 32) / jelly.wave_speed
+    for _ in range(int(1.2 / dt)):
+        sol.substep(dt)
+    st = sol.get_state()
+    zj = st["x"][mat == 0, 2].astype(np.float64)
+    z0 = xj[:, 2]
+    bot, top = z0 < z0.min() + s / 2, z0 > z0.max() - s / 2
+    shortening = (z0[top].mean() - z0[bot].mean()) - (zj[top].mean() - zj[bot].mean())
+    g = 9.8
+    p = plate.density * g * t
+    predicted = ((h - s) * p + jelly.density * g * ((h - s / 2) ** 2 - (s / 2) ** 2) / 2) / jelly.E
+    assert predicted > 0.5 / 32  # more than half a cell: measurable
+    assert shortening == pytest.approx(predicted, rel=0.1)
+    assert np.abs(sol.rigid.state()["V"]).max() < 0.01  # at rest
+    # the plate sits on the column's top layer
+    zp = st["x"][mat == 1, 2].astype(np.float64)
+    assert abs((zp.min() - zj[top].mean()) - s) < 0.25 * s

@@ -1,0 +1,94 @@
+"""Rigid bodies on soft material: how far does a rigid ball sink into jelly?  (prints figures)
+
+The ball_jelly scene's geometry (issue #15): a steel ball (radius 0.06 m, 7850 kg/m^3, a free
+rigid body) resting on a jelly slab (0.5 x 0.36 x 0.16 m, fixed corotated, nu 0.3, 1050 kg/m^3)
+on the ground, settled with grid damping.  Printed per grid resolution and jelly E: the sink
+depth (the ball's lowest point below the slab's top surface far from the ball) against Hertz'
+estimate for a rigid sphere on an elastic half-space,
+
+    delta = (9 W^2 / (16 E*^2 R))^(1/3),   E* = E / (1 - nu^2),   W = m g,
+
+and delta / R (Hertz assumes delta << R and a slab much thicker than the contact radius
+sqrt(R delta): a thin slab is stiffer, so it sinks less than Hertz says).  The MPM grid smears
+contact over about a cell, so the measured depth is meaningful where it spans several cells.
+
+    PYTHONPATH=src python benchmarks/bench_rigid.py [--grids 32 48] [--E 5e4 2e4]
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+from physgs_steps.mpm import Dynamics, Material, MPMSolver
+
+R_BALL, RHO_BALL = 0.06, 7850.0
+SLAB = (0.5, 0.36, 0.16)
+RHO_JELLY, NU = 1050.0, 0.3
+GROUND = 0.1
+G_ACC = 9.8
+
+
+def lattice(lo, hi, s):
+    axes = [np.arange(a + s / 2, b - 1e-9, s) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def hertz_depth(E: float, nu: float, mass: float, R: float) -> float:
+    """Hertz' indentation depth (m) of a rigid sphere of ``mass`` kg and radius R on an elastic
+    half-space of modulus E (Pa) and Poisson ratio nu, under gravity."""
+    W = mass * G_ACC
+    Es = E / (1.0 - nu * nu)
+    return (9.0 * W * W / (16.0 * Es * Es * R)) ** (1.0 / 3.0)
+
+
+def sink_depth(G: int, E: float) -> tuple[float, float]:
+    """(measured sink depth, ball mass) of the ball settled on the slab at grid ``G``."""
+    s = 0.5 / G
+    lo = np.array([0.5 - SLAB[0] / 2, 0.5 - SLAB[1] / 2, GROUND])
+    xj = lattice(lo, lo + np.array(SLAB), s)
+    top0 = GROUND + SLAB[2]
+    c = np.array([0.5, 0.5, top0 + R_BALL + 0.5 * s])
+    cube = lattice(c - R_BALL, c + R_BALL, s)
+    xb = cube[np.linalg.norm(cube - c, axis=1) <= R_BALL]
+    x = np.r_[xj, xb]
+    mat = np.r_[np.zeros(len(xj), int), np.ones(len(xb), int)]
+    jelly = Material("fixed_corotated", "identity", E=E, nu=NU, density=RHO_JELLY, name="jelly")
+    ball = Material("fixed_corotated", "identity", E=2e7, nu=0.3, density=RHO_BALL, name="ball", rigid=True)
+    dyn = Dynamics.from_config({"ground": {"height": GROUND, "friction": 0.5, "surface": "separate"}, "damping": 6.0})
+    sol = MPMSolver([jelly, ball], n_grid=G, dynamics=dyn, backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), mat)
+    dt = 0.4 * (1.0 / G) / jelly.wave_speed
+    for _ in range(int(1.5 / dt)):
+        sol.substep(dt)
+    st = sol.get_state()
+    xs = st["x"].astype(np.float64)
+    zj = xs[mat == 0]
+    far = np.linalg.norm(xj[:, :2] - 0.5, axis=1) > 0.15
+    top = far & (xj[:, 2] > xj[:, 2].max() - s / 2)
+    surface = zj[top, 2].mean() + s / 2        # the slab's face: half a particle spacing above the top layer
+    lowest = xs[mat == 1, 2].min() - s / 2     # the ball's face below its lowest particle layer
+    return float(surface - lowest), float(sol.rigid.mass[0])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--grids", type=int, nargs="+", default=[32, 48])
+    ap.add_argument("--E", type=float, nargs="+", default=[5.0e4, 2.0e4])
+    a = ap.parse_args()
+    t0 = time.perf_counter()
+    print("rigid steel ball (R 0.06 m) settled on a jelly slab 0.16 m thick: sink depth vs Hertz")
+    for E in a.E:
+        for G in a.grids:
+            d, m = sink_depth(G, E)
+            h = hertz_depth(E, NU, m, R_BALL)
+            print(f"  E {E:.3g} Pa, n_grid {G} (dx {1e3 / G:.1f} mm): sink {1e3 * d:6.1f} mm ({d * G:.2f} dx), "
+                  f"Hertz {1e3 * h:6.1f} mm (delta/R {h / R_BALL:.2f}, contact radius {1e3 * math.sqrt(R_BALL * h):.0f} mm), "
+                  f"ratio {d / h:.2f}")
+    print(f"({time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
