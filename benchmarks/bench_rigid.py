@@ -12,7 +12,17 @@ and delta / R (Hertz assumes delta << R and a slab much thicker than the contact
 sqrt(R delta): a thin slab is stiffer, so it sinks less than Hertz says).  The MPM grid smears
 contact over about a cell, so the measured depth is meaningful where it spans several cells.
 
-    PYTHONPATH=src python benchmarks/bench_rigid.py [--grids 32 48] [--E 5e4 2e4]
+A second measurement has an exact answer: a steel plate (0.25 x 0.25 x 0.0625 m) resting on a
+jelly column (0.25 m tall, nu = 0, on a frictionless ground). With nu = 0 the fixed-corotated
+column is in uniaxial stress, Cauchy sigma = E (lambda - 1), so between its bottom and top
+particle layers (s/2 and h - s/2 above the base) it shortens by
+[(h - s) p + rho g ((h - s/2)^2 - (s/2)^2) / 2] / E, p = the plate's weight per area. Printed
+for the column alone, with the plate as a free rigid body and with the plate deformable
+(E 5e5): the shortening against that value, and the gap between the plate's lowest layer and
+the column's top layer at 0.5 s and at the end (one particle spacing when the plate sits on
+it; a shrinking gap is the plate creeping into the column).
+
+    PYTHONPATH=src python benchmarks/bench_rigid.py [--grids 32 48] [--E 5e4 2e4] [--column-seconds 1.0]
 """
 from __future__ import annotations
 
@@ -73,12 +83,58 @@ def sink_depth(G: int, E: float) -> tuple[float, float]:
     return float(surface - lowest), float(sol.rigid.mass[0])
 
 
+def column(plate: str, seconds: float, G: int = 32) -> tuple[float, float, float, float]:
+    """(shortening, analytic shortening, gap at 0.5 s, gap at the end) in m of the jelly column
+    under the steel plate (``plate``: none | rigid | deformable)."""
+    s = 0.5 / G
+    g0, h, t, w = 0.125, 0.25, 0.0625, 0.25
+    lo = [0.5 - w / 2, 0.5 - w / 2]
+    xj = lattice(lo + [g0], [0.5 + w / 2, 0.5 + w / 2, g0 + h], s)
+    xp = lattice(lo + [g0 + h], [0.5 + w / 2, 0.5 + w / 2, g0 + h + t], s) if plate != "none" else np.zeros((0, 3))
+    x = np.r_[xj, xp]
+    mat = np.r_[np.zeros(len(xj), int), np.ones(len(xp), int)]
+    jelly = Material("fixed_corotated", "identity", E=5.0e4, nu=0.0, density=1000.0, name="column")
+    steel = Material("fixed_corotated", "identity", E=5.0e5, nu=0.0, density=7850.0, name="plate",
+                     rigid=plate == "rigid")
+    dyn = Dynamics.from_config({"ground": {"height": g0, "friction": 0.0, "surface": "separate"}, "damping": 8.0})
+    sol = MPMSolver([jelly, steel] if plate != "none" else [jelly], n_grid=G, dynamics=dyn, backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), mat)
+    dt = 0.4 * (1.0 / G) / max(jelly.wave_speed, steel.cfl_speed if plate != "none" else 0.0)
+    z0 = xj[:, 2]
+    bot, top = z0 < z0.min() + s / 2, z0 > z0.max() - s / 2
+
+    def gap():
+        if plate == "none":
+            return float("nan")
+        z = sol.get_state()["x"][:, 2].astype(np.float64)
+        return float(z[mat == 1].min() - z[mat == 0][top].mean())
+
+    n = int(seconds / dt)
+    g_half = float("nan")
+    for k in range(n):
+        sol.substep(dt)
+        if k == int(0.5 / dt):
+            g_half = gap()
+    zj = sol.get_state()["x"][mat == 0, 2].astype(np.float64)
+    short = (z0[top].mean() - z0[bot].mean()) - (zj[top].mean() - zj[bot].mean())
+    p = steel.density * G_ACC * t if plate != "none" else 0.0
+    pred = ((h - s) * p + jelly.density * G_ACC * ((h - s / 2) ** 2 - (s / 2) ** 2) / 2) / jelly.E
+    return float(short), float(pred), g_half, gap()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--grids", type=int, nargs="+", default=[32, 48])
     ap.add_argument("--E", type=float, nargs="+", default=[5.0e4, 2.0e4])
+    ap.add_argument("--column-seconds", type=float, default=1.0)
     a = ap.parse_args()
     t0 = time.perf_counter()
+    print("jelly column (E 5e4 Pa, nu 0, 0.25 m) under a steel plate, n_grid 32: shortening vs the exact value")
+    for plate in ("none", "rigid", "deformable"):
+        short, pred, g1, g2 = column(plate, a.column_seconds)
+        print(f"  plate {plate:10s}: shortening {1e3 * short:5.1f} mm, exact {1e3 * pred:5.1f} mm (ratio "
+              f"{short / pred:.2f}); plate gap {1e3 * g1:5.1f} mm at 0.5 s, {1e3 * g2:5.1f} mm at "
+              f"{a.column_seconds:g} s (one spacing: {1e3 * 0.5 / 32:.1f} mm)")
     print("rigid steel ball (R 0.06 m) settled on a jelly slab 0.16 m thick: sink depth vs Hertz")
     for E in a.E:
         for G in a.grids:
