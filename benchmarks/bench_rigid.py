@@ -22,7 +22,7 @@ for the column alone, with the plate as a free rigid body and with the plate def
 the column's top layer at 0.5 s and at the end (one particle spacing when the plate sits on
 it; a shrinking gap is the plate creeping into the column).
 
-    PYTHONPATH=src python benchmarks/bench_rigid.py [--grids 32 48] [--E 5e4 2e4] [--column-seconds 1.0]
+    PYTHONPATH=src python benchmarks/bench_rigid.py [--grids 32 48] [--E 5e4 2e4] [--column-seconds 1.0] [--column-E 5e4]
 """
 from __future__ import annotations
 
@@ -83,7 +83,7 @@ def sink_depth(G: int, E: float) -> tuple[float, float]:
     return float(surface - lowest), float(sol.rigid.mass[0])
 
 
-def column(plate: str, seconds: float, G: int = 32) -> tuple[float, float, float, float]:
+def column(plate: str, seconds: float, E: float = 5.0e4, G: int = 32) -> tuple[float, float, float, float]:
     """(shortening, analytic shortening, gap at 0.5 s, gap at the end) in m of the jelly column
     under the steel plate (``plate``: none | rigid | deformable)."""
     s = 0.5 / G
@@ -93,7 +93,7 @@ def column(plate: str, seconds: float, G: int = 32) -> tuple[float, float, float
     xp = lattice(lo + [g0 + h], [0.5 + w / 2, 0.5 + w / 2, g0 + h + t], s) if plate != "none" else np.zeros((0, 3))
     x = np.r_[xj, xp]
     mat = np.r_[np.zeros(len(xj), int), np.ones(len(xp), int)]
-    jelly = Material("fixed_corotated", "identity", E=5.0e4, nu=0.0, density=1000.0, name="column")
+    jelly = Material("fixed_corotated", "identity", E=E, nu=0.0, density=1000.0, name="column")
     steel = Material("fixed_corotated", "identity", E=5.0e5, nu=0.0, density=7850.0, name="plate",
                      rigid=plate == "rigid")
     dyn = Dynamics.from_config({"ground": {"height": g0, "friction": 0.0, "surface": "separate"}, "damping": 8.0})
@@ -127,11 +127,12 @@ def main() -> None:
     ap.add_argument("--grids", type=int, nargs="+", default=[32, 48])
     ap.add_argument("--E", type=float, nargs="+", default=[5.0e4, 2.0e4])
     ap.add_argument("--column-seconds", type=float, default=1.0)
+    ap.add_argument("--column-E", type=float, default=5.0e4)
     a = ap.parse_args()
     t0 = time.perf_counter()
-    print("jelly column (E 5e4 Pa, nu 0, 0.25 m) under a steel plate, n_grid 32: shortening vs the exact value")
+    print(f"jelly column (E {a.column_E:.3g} Pa, nu 0, 0.25 m) under a steel plate, n_grid 32: shortening vs the exact value")
     for plate in ("none", "rigid", "deformable"):
-        short, pred, g1, g2 = column(plate, a.column_seconds)
+        short, pred, g1, g2 = column(plate, a.column_seconds, a.column_E)
         print(f"  plate {plate:10s}: shortening {1e3 * short:5.1f} mm, exact {1e3 * pred:5.1f} mm (ratio "
               f"{short / pred:.2f}); plate gap {1e3 * g1:5.1f} mm at 0.5 s, {1e3 * g2:5.1f} mm at "
               f"{a.column_seconds:g} s (one spacing: {1e3 * 0.5 / 32:.1f} mm)")
