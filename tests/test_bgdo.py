@@ -17,6 +17,7 @@ import torch
 from physgs_steps import bgdo as B
 from physgs_steps import config as C
 from physgs_steps.errors import ConfigError, InputError
+from physgs_steps.mpm.colliders import FRONT_BAND, TOUCH
 
 LOG = logging.getLogger("test_bgdo")
 PP = {"yield_stress": 300.0, "friction_angle": 30.0, "cohesion": 0.01, "j_min": 0.95, "j_max": 1.05}
@@ -116,11 +117,11 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
             grid_v[node] = grid_v.get(node, 0) + weight * (p_mass * vs[p] + affine @ dpos)
             grid_m[node] = grid_m.get(node, 0) + weight * p_mass
     # domain walls: planes `margin` inside the domain faces, acting on the nodes of particles
-    # that touch them, with ghost velocities extrapolated from one cell in front (colliders.py)
+    # that touch them, with velocities on the line from the wall to the mirror point (colliders.py)
     walls = [(a, sg, margin * L if sg > 0 else L - margin * L) for a in range(3) for sg in (1.0, -1.0)]
     engaged = set()
     for p in range(P):
-        if min(sg * (xs[p][a] - pos) for a, sg, pos in walls) < 1e-3 * dx:
+        if min(sg * (xs[p][a] - pos) for a, sg, pos in walls) < TOUCH * dx:
             base = stencils[p][0]
             engaged |= {tuple(base + np.array(o)) for o in itertools.product(range(3), repeat=3)}
     pre = {}
@@ -147,20 +148,26 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
         xn = np.array(node) * dx
         for a, sg, pos in walls:
             phi = sg * (xn[a] - pos)
-            if phi >= 0 or node not in engaged:
+            if phi >= FRONT_BAND * dx or node not in engaged:  # behind, or in front within the band
                 continue
             nrm = np.zeros(3)
             nrm[a] = sg
-            vm = mirror(xn + (dx - phi) * nrm) if phi > -2 * dx else None
+            d = (FRONT_BAND + 1.0) * dx  # the mirror point lies d in front of the wall
+            vm = mirror(xn + (d - phi) * nrm) if phi > -2 * dx else None
+            q = phi / d
             if vm is None:  # plain rule
                 if boundary == "sticky":
                     gv = np.zeros(3)
                 elif gv @ nrm < 0:
                     gv = gv - (gv @ nrm) * nrm
             elif boundary == "sticky":
-                gv = (phi / dx) * vm
+                gv = q * vm
+            elif phi >= 0:  # in front: the normal velocity raised to the line through 0 and the mirror's
+                target = q * min(vm @ nrm, 0.0)
+                if gv @ nrm < target:
+                    gv = gv + (target - gv @ nrm) * nrm
             elif vm @ nrm < 0:
-                gv = vm - (vm @ nrm) * nrm + (phi / dx) * (vm @ nrm) * nrm
+                gv = vm - (vm @ nrm) * nrm + q * (vm @ nrm) * nrm
             else:
                 gv = vm
         grid_v[node] = gv

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .. import materials_kb
-from ..mpm.colliders import GHOST_BAND, TOUCH
+from ..mpm.colliders import FRONT_BAND, GHOST_BAND, TOUCH
 
 # ----------------------------------------------------------------------------- model names
 ELASTICITY = materials_kb.ELASTICITY_MODELS  # canonical names, docs/CONTRACTS.md
@@ -447,14 +447,16 @@ def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: f
         n = torch.zeros(3, dtype=dtp, device=dev)
         n[a] = sgn
         phi = sgn * (xn[:, a] - pos)  # [M]
-        behind = has & engaged & (phi < 0)
-        if not bool(behind.any()):
+        near = has & engaged & (phi < FRONT_BAND * dx)  # behind the wall, or in front within the band
+        if not bool(near.any()):
             continue
+        behind = near & (phi < 0)
         # plain rule (fallback): sticky -> 0; slip walls are "separate" without friction
         un_own = out @ n
         plain = torch.zeros_like(out) if sticky else out - torch.clamp(un_own, max=0.0)[:, None] * n
         # ghost: mirror sample (trilinear over nodes with mass)
-        xm = xn + (dx - phi)[:, None] * n  # axis-aligned: the mirror cube lies in front one cell out
+        d = (FRONT_BAND + 1.0) * dx  # axis-aligned: the mirror cube lies beyond the band
+        xm = xn + (d - phi)[:, None] * n
         gpos = xm / dx
         b0 = torch.floor(gpos).long()
         fr = gpos - b0.to(dtp)
@@ -466,16 +468,21 @@ def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: f
         wsum = wcor.sum(1)
         ok = wsum > 1e-6
         vm = (wcor[..., None] * dense_v[nk]).sum(1) / torch.where(ok, wsum, torch.ones_like(wsum))[:, None]
-        q = (phi / dx)[:, None]
+        q = (phi / d)[:, None]
+        un = vm @ n
         if sticky:
             ghost = q * vm
+            front = q * vm
         else:
-            un = vm @ n
             ut = vm - un[:, None] * n
             approach = ut + q * un[:, None] * n  # no friction on the walls
             ghost = torch.where((un < 0)[:, None], approach, vm)
-        use_ghost = behind & ok & (phi > -GHOST_BAND * dx)
-        out = torch.where(use_ghost[:, None], ghost, torch.where(behind[:, None], plain, out))
+            # in front: the normal part pushed up to the line through 0 and the mirror's (pushes only)
+            target = q[:, 0] * torch.clamp(un, max=0.0)
+            front = out + torch.clamp(target - un_own, min=0.0)[:, None] * n
+        use_ghost = near & ok & (phi > -GHOST_BAND * dx)
+        out = torch.where(use_ghost[:, None], torch.where(behind[:, None], ghost, front),
+                          torch.where(near[:, None], plain, out))
     return out
 
 

@@ -37,20 +37,28 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
 * grid (kernels.py): an obstacle acts on a node only where material touches it: a node
   to which a particle transfers whose centre is within ``TOUCH`` cells of the obstacle (or
   behind it); without this, grid contact reaches about 1.5 cells in front of the surface and
-  a body comes to rest anywhere in that layer, depending on how it arrived.  Such a node
-  with mass and ``-GHOST_BAND dx < phi < 0`` (and every node of a cuboid) gets a *ghost
-  velocity*, the linear extrapolation across the surface of the velocity ``v_m`` sampled
-  (trilinear, over nodes with mass) at the mirror point ``x + (|phi| + d) n`` on the free
-  side, ``d = dx |n|_1`` (1 cell for an axis-aligned surface, up to sqrt(3): the mirror's
-  trilinear cube lies entirely in front of the surface), such that the interpolated field
-  takes the boundary's value exactly at ``phi = 0``: relative velocity ``u = v_m - v_c``,
-  ratio ``q = phi / d`` (in [-GHOST_BAND, 0]); sticky: ``v = v_c + q u``; slip: normal part ``q u_n``,
-  tangential part ``u_t``; separate: as slip when ``u_n < 0`` (approaching), else ``v = v_m``
-  (leaving is free); friction scales the tangential part at the surface to
-  ``max(0, |u_t| + mu u_n) / |u_t|`` and extrapolates linearly through it.  The quadratic
-  B-spline reproduces linear fields, so particles see a velocity field that reaches the
-  boundary condition at the surface itself, not at the last constrained node (which lies
-  anywhere up to one cell behind it).  Deeper nodes, or nodes whose mirror has no mass, get
+  a body comes to rest anywhere in that layer, depending on how it arrived.  (``TOUCH`` is a
+  tenth of a cell, not zero: a resting particle bobbing by a rounding error must not switch
+  its support off for a substep, which lets the lowest layers creep onto the plane.)  Such a
+  node with mass and ``-GHOST_BAND dx < phi < FRONT_BAND dx`` gets a velocity on the line
+  through the boundary's value at the surface and the velocity ``v_m`` sampled (trilinear,
+  over nodes with mass, before any boundary) at the mirror point ``x + (d - phi) n`` on the
+  free side, ``d = (FRONT_BAND + |n|_1) dx`` (the mirror's trilinear cube lies beyond the
+  band, so no node reads a value that the boundary changes): relative velocity
+  ``u = v_m - v_c``, ratio ``q = phi / d``.  Behind the surface (``phi < 0``, ghost nodes):
+  sticky ``v = v_c + q u``; slip: normal part ``q u_n``, tangential part ``u_t``; separate: as
+  slip when ``u_n < 0`` (approaching), else ``v = v_m`` (leaving is free); friction scales the
+  tangential part at the surface to ``max(0, |u_t| + mu u_n) / |u_t|`` and extrapolates
+  linearly through it.  In front of it (``0 <= phi < FRONT_BAND dx``): sticky
+  ``v = v_c + q u``; slip: the node's normal part set to ``q u_n``; separate: raised to
+  ``q min(u_n, 0)`` where it is below (the surface only pushes), with Coulomb friction, ``mu``
+  times that push, on the node's own tangential part.  These front nodes carry the surface's
+  reaction: the quadratic B-spline weighs nodes up to 1.5 cells in front of a point on the
+  surface, and with a condition only behind the surface a resting body's weight has nothing
+  to hold it there (its lowest layers pile up on the plane, held only by the particle
+  projection: a jelly column shortened by 2.5x its exact value; bench_rigid.py).  Cuboids
+  (holding regions) get the ghost rule on every node inside them and none in front (the held
+  particles inside carry the reaction).  Deeper nodes, or nodes whose mirror has no mass, get
   the plain node rule (sticky: v_c; slip/separate: inward normal part removed, friction).
 * particles: after G2P a deformable particle with ``phi < 0`` is moved back onto the surface
   (``x -= phi n``) and its inward normal velocity removed (sticky: ``v = v_c``).  So a body's
@@ -72,8 +80,9 @@ import numpy as np
 from ..errors import ConfigError, InputError
 
 SURFACE_KIND = {"sticky": 0.0, "slip": 1.0, "separate": 2.0}
-TOUCH = 1.0e-3       # cells: a particle this close to an obstacle (or behind it) touches it
+TOUCH = 0.1          # cells: a particle this close to an obstacle (or behind it) touches it
 GHOST_BAND = 2.0     # nodes up to this many cells behind a surface get ghost velocities
+FRONT_BAND = 1.0     # cells: engaged nodes this close in front of an obstacle carry its reaction
 FINE = 4             # level sets: voxels per grid cell of the fine occupancy grid
 MAX_FINE_VOXELS = 40_000_000
 OCC_RADIUS = 1.25    # union-of-balls radius in point spacings

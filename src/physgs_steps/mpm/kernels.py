@@ -42,7 +42,7 @@ import taichi as ti
 
 from . import materials as M
 
-from .colliders import GHOST_BAND, TOUCH
+from .colliders import FRONT_BAND, GHOST_BAND, TOUCH
 
 vec3 = ti.types.vector(3, ti.f32)
 mat3 = ti.types.matrix(3, 3, ti.f32)
@@ -212,14 +212,17 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
         return out
 
     @ti.func
-    def ghost(xn, gv, phi, n, vc, kind, fric, dx, grid_v: ti.template(), grid_m: ti.template()):
-        """The node velocity behind a boundary (phi < 0): linear extrapolation across the
-        surface from the mirror point's velocity (colliders.py), else the plain node rule."""
+    def ghost(xn, gv, phi, n, vc, kind, fric, dx, band, grid_v: ti.template(), grid_m: ti.template()):
+        """The node velocity near a boundary (colliders.py, "Boundary placement"): behind it
+        (phi < 0) the linear extrapolation across the surface of the velocity at the mirror
+        point ``d = (band + |n|_1) dx`` in front of the surface; in front of it (0 <= phi <
+        band dx: nodes whose kernel support holds the surface) the normal velocity on the same
+        line, which gives these nodes the surface's reaction; else the plain node rule."""
         G = grid_m.shape[1]
         out = gv
         done = 0
         if phi > -GHOST_BAND * dx:
-            dm = dx * (ti.abs(n[0]) + ti.abs(n[1]) + ti.abs(n[2]))  # the mirror's trilinear cube lies in front
+            dm = dx * (band + ti.abs(n[0]) + ti.abs(n[1]) + ti.abs(n[2]))  # the mirror's trilinear cube lies beyond the band
             xm = xn + (dm - phi) * n
             g = xm / dx
             base = ti.cast(ti.floor(g), ti.i32)
@@ -238,7 +241,24 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
                 u = vm - vc
                 q = phi / dm
                 un = u.dot(n)
-                if kind < 0.5:
+                if phi >= 0.0:  # in front: the normal part on the line through v_c and the mirror's
+                    own = gv - vc
+                    own_n = own.dot(n)
+                    if kind < 0.5:
+                        out = vc + q * u
+                    else:
+                        target = q * un
+                        if kind >= 1.5:  # separate: it only pushes, and only against approaching material
+                            target = q * ti.min(un, 0.0)
+                        dn = target - own_n
+                        if kind < 1.5 or dn > 0.0:
+                            ot = own - own_n * n
+                            if dn > 0.0:  # Coulomb friction of the push
+                                vt = ot.norm()
+                                if vt > 1e-20:
+                                    ot *= ti.max(0.0, vt - fric * dn) / vt
+                            out = vc + ot + target * n
+                elif kind < 0.5:
                     out = vc + q * u
                 elif kind < 1.5 or un < 0.0:
                     ut = u - un * n
@@ -435,9 +455,15 @@ def build(spec: Spec) -> SimpleNamespace:
                 for s in range(n_slots):
                     active, phi, n, vc, kind, fric = col.slot(s, xn, I, True, t, dx, L, wall, dyn, lvl_phi, lvl_id,
                                                               lvl_rows)
-                    # obstacles act where material touches them; cuboids (holding regions) always
-                    if active == 1 and phi < 0.0 and (engaged or s >= n_obst):
-                        gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, grid_v, grid_m)
+                    # obstacles act where material touches them, on the nodes behind them and
+                    # those in front whose support holds the surface; cuboids (holding regions)
+                    # on every node inside
+                    if active == 1:
+                        if s < n_obst:
+                            if engaged and phi < FRONT_BAND * dx:
+                                gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, FRONT_BAND, grid_v, grid_m)
+                        elif phi < 0.0:
+                            gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, 0.0, grid_v, grid_m)
             grid_b[i, j, k] = gv
         # G2P, F update, return map, stress of the new F; boundaries on deformable particles
         for p in x:
