@@ -5,8 +5,10 @@ Two measurements at n_grid 16, 32 and 64 (particles on a lattice of spacing dx /
 * **Ground**: an elastic block (E 2e5 Pa, 1000 kg/m^3, 0.12 x 0.12 x 0.08 m, static strain
   0.4 %) released 2 mm above the ground plane settles (damping 8/s).  Printed: the height of
   its lowest particle layer above the plane in mm and in cells.  Where the boundary sits where
-  the user put it, the outermost particles rest on the plane (0 mm at every resolution), as the
-  surface gaussians of a reconstruction (which lie on its surface) should.  Run for two plane
+  the user put it, the outermost particles rest on the plane, as the surface gaussians of a
+  reconstruction (which lie on its surface) should: contact starts ``colliders.TOUCH`` = 0.1
+  cells in front of it, so they rest 0.1 cells above it at every resolution (the error falls
+  with dx), and the material above is held at the plane, not piled onto it.  Run for two plane
   heights (on a node plane at every n_grid, and 0.4 cells of n_grid 32 above it) to expose the
   dependence on where the plane falls between nodes.
 * **Clamp**: a bar (nu = 0, c = sqrt(E / rho) = 14 m/s) whose first 0.125 m is held by a

@@ -62,7 +62,8 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
   the plain node rule (sticky: v_c; slip/separate: inward normal part removed, friction).
 * particles: after G2P a deformable particle with ``phi < 0`` is moved back onto the surface
   (``x -= phi n``) and its inward normal velocity removed (sticky: ``v = v_c``).  So a body's
-  outermost particles (for a reconstruction: the surface gaussians) rest on the surface.  A
+  outermost particles (for a reconstruction: the surface gaussians) rest on the surface, within
+  ``TOUCH`` (a tenth of a cell) of it: contact starts there (bench_boundaries.py).  A
   cuboid is a holding region, not an obstacle: a particle inside an active cuboid moves with
   the cuboid but keeps taking part in the transfers with the velocity the ghost nodes extend
   into the box, so stress and momentum stay continuous across the face and the free
