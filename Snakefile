@@ -14,6 +14,8 @@ include: "workflow/rules/params.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/benchmark.smk"
+include: "workflow/rules/validation.smk"
 
 
 # `snakemake --cores 1` alone: the main job (bear), or the first scene of a custom scenes_dir.

@@ -86,19 +86,35 @@ def bench_qwen3vl(folder: Path, path: str, device: str, views: int, log) -> None
 
 
 def bench_physical(folder: Path, t: int, nv: int) -> None:
+    """The plausibility figures: accumulated while writing (as final_sim does), read back
+    from the stored attribute (the metrics stage), and recomputed by streaming every frame."""
+    from physgs_steps.final_frames import FinalWriter
+    from physgs_steps.physical import PhysicalFigures, figures_from_file
+
     rng = np.random.default_rng(0)
     x0 = rng.uniform(0.3, 0.6, (nv, 3)).astype(np.float32)
     path = folder / "final.h5"
+    times = np.arange(t) / 30.0
+    acc = PhysicalFigures(t)
+    t_acc = 0.0
     with h5py.File(path, "w") as h:
-        x = h.create_dataset("x", (t, nv, 3), np.float32, chunks=(1, nv, 3), compression="gzip")
-        f = h.create_dataset("F", (t, nv, 3, 3), np.float32, chunks=(1, nv, 3, 3), compression="gzip")
+        w = FinalWriter(h, np.arange(nv), times)
         for i in range(t):
-            x[i] = x0 - np.float32(0.001 * i) * np.array([0, 0, 1], np.float32)
-            f[i] = np.eye(3, dtype=np.float32) + rng.normal(0, 0.01, (nv, 3, 3)).astype(np.float32)
-        h.create_dataset("time", data=np.arange(t) / 30.0)
+            x = x0 - np.float32(0.001 * i) * np.array([0, 0, 1], np.float32)
+            f = np.eye(3, dtype=np.float32) + rng.normal(0, 0.01, (nv, 3, 3)).astype(np.float32)
+            w.frame(i, x, f)
+            t0 = time.perf_counter()
+            acc.add(i, x, f)
+            t_acc += time.perf_counter() - t0
+        w.finish({"physical": acc.result(times)})
     t0 = time.perf_counter()
     physical_figures(str(path))
-    print(f"plausibility figures, T={t}, Nv={nv}: {time.perf_counter() - t0:.2f} s (peak RSS {peak_rss_mb():.0f} MiB)")
+    t_read = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    figures_from_file(str(path))
+    t_stream = time.perf_counter() - t0
+    print(f"plausibility figures, T={t}, Nv={nv}: accumulated while writing {t_acc:.2f} s, read back by metrics "
+          f"{t_read:.3f} s, recomputed from the frames {t_stream:.2f} s (peak RSS {peak_rss_mb():.0f} MiB)")
 
 
 def bench_clip(folder: Path, clip: str, n_frames: int) -> None:

@@ -77,6 +77,18 @@ def np_return_map(F, mu, lam, pp, model):
     c = pp["cohesion"]
     e = eps - c
     sphi = math.sin(math.radians(pp["friction_angle"]))
+    if model == "mohr_coulomb":  # principal Kirchhoff stresses against (t1 - t3) + (t1 + t3) sin(phi) <= 0
+        if e.sum() >= 0:
+            return U @ np.diag(np.exp(np.zeros(3) + c)) @ V.T
+        t = 2 * mu * e + lam * e.sum()
+        f = (t.max() - t.min()) + (t.max() + t.min()) * sphi
+        if f > 0:  # shrink the deviator at constant mean strain until f = 0 (f is linear in the scale)
+            mean, dev = e.mean(), e - e.mean()
+            td = 2 * mu * dev
+            f0 = 2 * (2 * mu / 3 + lam) * e.sum() * sphi  # f of the bare mean stress
+            f1 = (td.max() - td.min()) + (td.max() + td.min()) * sphi
+            e = mean + (-f0 / f1) * dev
+        return U @ np.diag(np.exp(e + c)) @ V.T
     alpha = math.sqrt(2 / 3) * 2 * sphi / (3 - sphi)
     tr = e.sum()
     if tr >= 0:
@@ -114,7 +126,7 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
             dpos = (np.array(o) - fx) * dx
             weight = w[o[0]][0] * w[o[1]][1] * w[o[2]][2]
             node = tuple(base + np.array(o))
-            grid_v[node] = grid_v.get(node, 0) + weight * (p_mass * vs[p] + affine @ dpos)
+            grid_v[node] = grid_v.get(node, 0) + weight * (p_mass * (vs[p] - 0.5 * dt * np.asarray(g, float)) + affine @ dpos)
             grid_m[node] = grid_m.get(node, 0) + weight * p_mass
     # domain walls: planes `margin` inside the domain faces, acting on the nodes of particles
     # that touch them, with velocities on the line from the wall to the mirror point (colliders.py)
@@ -192,7 +204,7 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
                 elif sg * nv[a] < 0:
                     nv[a] = 0.0
         out["x"][p] = xn / L
-        out["v"][p] = nv / L
+        out["v"][p] = (nv + 0.5 * dt * np.asarray(g, float)) / L
         out["C"][p] = nC
         out["F"][p] = np_return_map(Ft, mu[p], lam[p], models[p][2], models[p][1])
     return out
@@ -243,8 +255,8 @@ def test_return_map_matches_numpy(model):
     F[2] = np.eye(3) * 1.1  # stretched (Drucker-Prager tension branch)
     mu, lam = 3.0e4, 5.0e4
     n = F.shape[0]
-    pp = B.PlasticParams(*(torch.full((n,), float(PP[k]), dtype=torch.float64)
-                           for k in ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max")))
+    full = {**PP, "fracture_strain": math.inf, "fracture_softening": 0.2}  # no tearing
+    pp = B.PlasticParams(*(torch.full((n,), float(full[k]), dtype=torch.float64) for k in B.PLASTIC_KEYS))
     got = B.return_map(torch.as_tensor(F), torch.full((n,), mu, dtype=torch.float64),
                        torch.full((n,), lam, dtype=torch.float64), pp, model).numpy()
     want = np.stack([np_return_map(f, mu, lam, PP, model) for f in F])
@@ -438,6 +450,35 @@ def test_pseudo_step_matches_taichi_with_a_rigid_body():
     xr1 = out["x"].detach().numpy()[: len(xr)]
     assert np.allclose(np.linalg.norm(xr1[:20, None] - xr1[None, -20:], axis=-1),
                        np.linalg.norm(xr[:20, None] - xr[None, -20:], axis=-1), atol=1e-9)
+
+
+def test_pseudo_step_matches_taichi_with_tearing():
+    """Tearing materials (tension cut-off, damage from the accumulated inelastic strain ep,
+    degraded stress, broken particles) step alike in Taichi and torch: x, v, C, F and ep."""
+    Dynamics, Material, MPMSolver = _taichi_solver()
+    pairs = [("stvk_hencky", "von_mises"), ("fixed_corotated", "identity"), ("neo_hookean", "mohr_coulomb")]
+    P, G, dt = len(pairs) * 60, 16, 2e-4
+    x, v, Cm, F = random_state(P, seed=8, spread=0.15)
+    ep = np.random.default_rng(3).uniform(0.0, 0.3, P)  # intact, damaged and broken particles
+    vol = np.full(P, (0.3 / G) ** 3 * 0.5)
+    label = np.arange(P) % len(pairs)
+    pp = {**PP, "yield_stress": 3e3, "fracture_strain": 0.05, "fracture_softening": 0.2}
+    insts = [inst(k, e, p, E=1e5, pp=pp) for k, (e, p) in enumerate(pairs)]
+    mats = [Material(i["elasticity"], i["plasticity"], E=i["E"], nu=i["nu"], density=i["density"], **pp)
+            for i in insts]
+    s = MPMSolver(mats, n_grid=G, domain_size=1.0, dynamics=Dynamics.free(), backend="cpu")
+    s.set_particles(x, vol, label)
+    s.set_state(x, v, Cm, F, ep=ep)
+    s.substep(dt)
+    ref = s.get_state()
+    assert (ref["ep"] > ep + 1e-6).any() and (ref["ep"] >= 0.2).any()  # damage grew; some are broken
+    table = B.instance_table(insts, label, vol)
+    st = tstate(x, v, Cm, F, dtype=torch.float32)
+    st["ep"] = torch.as_tensor(ep, dtype=torch.float32)
+    out = B.pseudo_step(st, dt, B.log_E_from_instances(insts), table, B.GridSpec(G))
+    for q in ("x", "v", "C", "F", "ep"):
+        err = float(np.abs(out[q].detach().numpy() - ref[q]).max())
+        assert err <= 2e-5 * max(float(np.abs(ref[q]).max()), 1.0), (q, err)
 
 
 @pytest.mark.gpu

@@ -138,7 +138,8 @@ def test_sphere_fill_counts_volume_and_inside():
     v = 4 / 3 * np.pi * 0.15 ** 3
     dx = 1 / 32
     assert inst.status == "filled" and inst.volume == pytest.approx(v, rel=0.05)
-    assert res.x.shape[0] == inst.n_filled == round(8 * inst.volume / dx ** 3)
+    ppc = fcfg()["particles_per_cell"]  # the default
+    assert res.x.shape[0] == inst.n_filled == round(ppc * inst.volume / dx ** 3)
     assert (np.linalg.norm(res.x - 0.5, axis=1) < 0.15 + 0.002).all()  # Qhull pre-merge tolerance 0.001
     assert (res.label == 0).all() and inst.duplicates == 0
     total_vol = res.vol_gaussians.sum() + res.vol_filled.sum()
@@ -204,7 +205,9 @@ def test_degenerate_instances_fall_back_without_filling():
     assert st == ["filled", "flat", "too_small"]
     assert (res.label == 0).all()
     assert any("flat" not in w and "too few" in w for w in res.warnings) or len(res.warnings) == 2
-    assert res.vol_gaussians[3000:3500].min() > 0  # flat instance still has mass
+    rows = res.gaussian_rows
+    leaf = rows[(rows >= 3000) & (rows < 3500)]
+    assert leaf.size > 0 and res.vol_gaussians[leaf].min() > 0  # flat instance still has mass
     # with the thickness check off, Qhull itself fails on the plane: reported, not raised
     res2 = fill(pts, labels, min_thickness=0.0)
     assert res2.instances[1].status == "degenerate" and "Qhull" in res2.instances[1].reason
@@ -285,7 +288,8 @@ def _pipeline(tmp_path, name, n, fills):
            {"scene": scene, "cluster": section_defaults("cluster")}, LOG)
     out = {}
     for tag, over in fills.items():
-        o = {"particles": str(tmp_path / f"particles_{tag}.h5"), "report": str(tmp_path / f"report_{tag}.json")}
+        o = {"particles": str(tmp_path / f"particles_{tag}.h5"), "report": str(tmp_path / f"report_{tag}.json"),
+             "carrier": str(tmp_path / f"carrier_{tag}.h5")}
         F.run({"scene": p["scene"], "labels": p["labels"], "transform": p["transform"]}, o,
               {"scene": scene, "fill": fcfg(n_grid=64, **over)}, LOG)
         out[tag] = o
@@ -295,17 +299,27 @@ def _pipeline(tmp_path, name, n, fills):
 def test_run_basket_mat_writes_particles_and_report(tmp_path):
     from physgs_steps.scene_io import load_gaussians
 
-    p, out = _pipeline(tmp_path, "basket_mat", 8000, {"paper": {}, "surface": {"occupancy": "surface", "mcis": False}})
+    p, out = _pipeline(tmp_path, "basket_mat", 8000, {"paper": {"particles": "gaussians"},
+                                                      "surface": {"occupancy": "surface", "mcis": False}})
     scene = load_gaussians(p["scene"])
     with h5py.File(out["paper"]["particles"]) as h:
         x, lab, filled, vol, op = h["x"][:], h["label"][:], h["filled"][:], h["vol"][:], h["opacity"][:]
         assert h.attrs["n_gaussians"] == scene.n and h.attrs["n_instances"] == 2
-        assert json.loads(h.attrs["config"])["method"] == "ipf"
+        assert json.loads(h.attrs["config"])["method"] == "ipf" and h.attrs["particles"] == "gaussians"
         assert h["log_scales"].shape == (len(x), 3) and h["quats"].shape == (len(x), 4)
+        np.testing.assert_array_equal(h["gaussian_row"][:scene.n], np.arange(scene.n))
+        assert h["driver"][:scene.n].all() and not h["driver"][scene.n:].any()  # each gaussian drives itself
     assert x.dtype == np.float32 and lab.dtype == np.int32 and filled.dtype == bool and vol.dtype == np.float32
-    np.testing.assert_array_equal(x[:scene.n], scene.means)
+    np.testing.assert_array_equal(x[:scene.n], scene.means)  # the paper's way: every gaussian is a particle
     assert not filled[:scene.n].any() and filled[scene.n:].all() and filled.sum() > 0
     assert (op[filled] == 0).all() and (op[~filled] > 0).all() and (vol > 0).all()
+    # the budget: one surface gaussian per sub-cell, the same filled interior, the same total volume
+    with h5py.File(out["surface"]["particles"]) as h:
+        rows, bx, bvol = h["gaussian_row"][:], h["x"][:], h["vol"][:]
+        g = int((rows >= 0).sum())
+        assert h.attrs["particles"] == "budget" and 0 < g < scene.n
+        np.testing.assert_array_equal(bx[:g], scene.means[rows[:g]])
+        assert (rows[g:] == -1).all() and np.all(np.diff(rows[:g]) > 0)
     paper = json.loads(Path(out["paper"]["report"]).read_text())
     surface = json.loads(Path(out["surface"]["report"]).read_text())
     for rep in (paper, surface):
@@ -329,7 +343,8 @@ def test_run_without_ground_truth_and_stale_labels(tmp_path):
     save_gaussians(scene, tmp_path / "scene.ply")
     np.savez(tmp_path / "labels.npz", labels=np.zeros(n, np.int32))
     inputs = {"scene": str(tmp_path / "scene.ply"), "labels": str(tmp_path / "labels.npz"), "transform": "unused"}
-    outs = {"particles": str(tmp_path / "particles.h5"), "report": str(tmp_path / "report.json")}
+    outs = {"particles": str(tmp_path / "particles.h5"), "report": str(tmp_path / "report.json"),
+            "carrier": str(tmp_path / "carrier.h5")}
     F.run(inputs, outs, {"scene": {"source": "my_capture.ply"}, "fill": fcfg()}, LOG)
     rep = json.loads(Path(outs["report"]).read_text())
     assert rep["evaluation"]["available"] is False and "ground-truth" in rep["evaluation"]["reason"]

@@ -100,12 +100,13 @@ def test_normalize_model_rejects(kind, name):
 
 def test_full_plasticity_params_defaults():
     full = mkb.full_plasticity_params({"yield_stress": 10})
-    assert full == {"yield_stress": 10.0, "friction_angle": None, "cohesion": 0.0, "j_min": 0.05, "j_max": 1.2}
+    assert full == {"yield_stress": 10.0, "friction_angle": None, "cohesion": 0.0, "j_min": 0.05, "j_max": 1.2,
+                    "fracture_strain": None, "fracture_softening": 0.2}
 
 
 def test_material_params_and_table():
     p = mkb.material_params("sand")
-    assert p["plasticity"] == "drucker_prager" and p["plasticity_params"]["friction_angle"] > 0
+    assert p["plasticity"] == "mohr_coulomb" and p["plasticity_params"]["friction_angle"] > 0
     table = mkb.kb_table_text()
     assert table.count("\n") + 1 == len(mkb.material_names())
     assert "friction_angle=" in table and "yield_stress=" in table

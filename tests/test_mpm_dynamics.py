@@ -157,7 +157,7 @@ def test_column_resting_on_the_ground_shortens_by_its_weight(ground):
     z0 = x[:, 2]
     bot, top = z0 < z0.min() + s / 2, z0 > z0.max() - s / 2
     short = []
-    n = int(1.2 / dt)
+    n = int(1.6 / dt)
     for k in range(n):
         sol.substep(dt)
         if k >= n - int(0.2 / dt):  # the last 0.2 s, settled (damping 8 / s)

@@ -121,6 +121,18 @@ def _numpy_return_map(model: str, F: np.ndarray, m: Material) -> np.ndarray:
         n = np.linalg.norm(hat, axis=-1, keepdims=True)
         dg = n - m.yield_stress / (2 * mu)
         eps = np.where(dg > 0, eps - dg * hat / np.maximum(n, 1e-30), eps)
+    elif model == "mohr_coulomb":  # shrink the deviator at constant volume onto the MC surface
+        e = eps - m.cohesion
+        tr = e.sum(-1, keepdims=True)
+        hat = e - tr / 3
+        sphi = math.sin(math.radians(m.friction_angle))
+        t = 2 * mu * e + lam * tr
+        f = (t.max(-1) - t.min(-1)) + (t.max(-1) + t.min(-1)) * sphi
+        th = 2 * mu * hat
+        f1 = (th.max(-1) - th.min(-1)) + (th.max(-1) + th.min(-1)) * sphi
+        scale = np.where(f > 0, -2 * (2 * mu / 3 + lam) * tr[:, 0] * sphi / np.maximum(f1, 1e-30), 1.0)
+        e = np.where(tr >= 0, 0.0, tr / 3 + np.minimum(scale, 1.0)[:, None] * hat)
+        eps = e + m.cohesion
     else:  # drucker_prager
         e = eps - m.cohesion
         tr = e.sum(-1, keepdims=True)
@@ -137,6 +149,8 @@ PLASTIC = [
     Material("fixed_corotated", "j_clamp", E=E, nu=NU, density=1000.0, name="j_clamp", j_min=0.9, j_max=1.05),
     Material("stvk_hencky", "von_mises", E=E, nu=NU, density=1000.0, name="von_mises", yield_stress=2.0e3),
     Material("stvk_hencky", "drucker_prager", E=E, nu=NU, density=1600.0, name="drucker_prager", friction_angle=30.0,
+             cohesion=0.01),
+    Material("stvk_hencky", "mohr_coulomb", E=E, nu=NU, density=1600.0, name="mohr_coulomb", friction_angle=30.0,
              cohesion=0.01),
     Material("fluid", "fluid", E=E, nu=NU, density=1000.0, name="fluid"),
 ]
@@ -169,6 +183,14 @@ def test_return_map_lands_on_or_inside_yield_surface(plastic_solver, k):
         dev = np.linalg.norm(eps - eps.mean(-1, keepdims=True), axis=-1)
         assert np.all(dev <= m.yield_stress / (2 * mu) + 2e-5)
         assert np.mean(dev > 0.9 * m.yield_stress / (2 * mu)) > 0.3  # many trial states were projected
+    elif m.plasticity == "mohr_coulomb":
+        e = eps - m.cohesion
+        tr = e.sum(-1)
+        t = 2 * mu * e + lam * tr[:, None]  # principal Kirchhoff stresses (tension > 0)
+        sphi = math.sin(math.radians(m.friction_angle))
+        f = (t.max(-1) - t.min(-1)) + (t.max(-1) + t.min(-1)) * sphi
+        assert np.all(f <= 2e-5 * mu) and np.all(tr <= 2e-5)
+        assert np.mean(np.abs(f) < 1e-4 * mu) > 0.3  # many trial states were projected onto the surface
     else:
         e = eps - m.cohesion
         tr = e.sum(-1)
@@ -206,3 +228,53 @@ def test_presets_come_from_the_knowledge_base(name):
     assert (m.elasticity, m.plasticity, m.E, m.nu, m.density) == (e["elasticity"], e["plasticity"], e["E"], e["nu"],
                                                                    e["density"])
     assert m.wave_speed == pytest.approx(math.sqrt((m.lam + 2 * m.mu) / m.density))
+
+
+def test_tearing_return_map_caps_tension_and_breaks():
+    """Tearing: principal elastic strain above fracture_strain becomes crack opening ep, the
+    tensile stresses fade with d = ep / fracture_softening, and a cracked particle keeps its
+    compression."""
+    m = Material("stvk_hencky", "identity", E=E, nu=NU, density=1000.0, name="brittle", fracture_strain=0.05,
+                 fracture_softening=0.2)
+    s = MPMSolver([m], n_grid=16, backend="cpu")
+    F = np.array([np.diag([1.02, 1.0, 1.0]), np.diag([1.2, 1.0, 1.0]), np.diag([1.5, 1.0, 1.0]), np.diag([0.9] * 3)],
+                 np.float32)
+    F_out, tau, ep = s.return_map(F, np.zeros(4, int), ep=np.array([0.0, 0.0, 0.0, 0.25]), with_ep=True)
+    assert np.allclose(F_out[0], F[0], atol=1e-6) and ep[0] == 0.0  # below the cut-off: elastic
+    e1 = math.log(1.2) - 0.05
+    assert ep[1] == pytest.approx(e1, rel=1e-4) and F_out[1][0, 0] == pytest.approx(math.exp(0.05), rel=1e-5)
+    mu, lam = lame(E, NU)
+    d = e1 / 0.2
+    t = np.array([2 * mu * 0.05 + lam * 0.05, lam * 0.05, lam * 0.05])  # Hencky stress of the capped F
+    assert tau[1][0, 0] == pytest.approx((1 - d) * t[0], rel=1e-3)  # tension fades
+    assert ep[2] >= 0.2 and np.allclose(F_out[2], np.eye(3), atol=1e-6)  # cracked: tensile stretch forgotten
+    assert np.allclose(F_out[3], 0.9 * np.eye(3), atol=1e-6) and tau[3][0, 0] < 0  # broken but still resists compression
+    assert np.allclose(tau[3], tau[3][0, 0] * np.eye(3), atol=1e-3)
+    with pytest.raises(ConfigError, match="fracture_softening"):
+        Material("stvk_hencky", "identity", E=E, nu=NU, density=1000.0, fracture_strain=0.05, fracture_softening=0.0)
+
+
+@pytest.mark.parametrize("tears", [True, False])
+def test_pulled_bar_tears_only_with_fracture(tears):
+    """A bar pulled from both ends: with fracture parameters it parts into two pieces (a gap
+    wider than the grid's reach), without them it only stretches."""
+    from physgs_steps.mpm import Dynamics
+
+    m = Material("stvk_hencky", "von_mises", E=5e4, nu=0.25, density=250.0, yield_stress=2e3, name="bar",
+                 fracture_strain=0.03 if tears else None, fracture_softening=0.1)
+    h = 1 / 64
+    ax = [np.arange(lo + h / 2, hi, h) for lo, hi in ((0.3, 0.7), (0.47, 0.53), (0.47, 0.53))]
+    x = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    pull = [{"type": "enforce_particle_translation", "point": [cx, 0.5, 0.5], "size": [0.04, 0.1, 0.1],
+             "velocity": [vx, 0.0, 0.0], "start_time": 0.0} for cx, vx in ((0.3, -0.3), (0.7, 0.3))]
+    s = MPMSolver([m], n_grid=32, dynamics=Dynamics(gravity=(0, 0, 0), boundary_conditions=pull), backend="cpu")
+    s.set_particles(x, np.full(len(x), h ** 3), np.zeros(len(x), int))
+    for _ in range(250):  # 0.25 s: the ends move 0.15 m apart, 37% of the bar
+        s.substep(1e-3)
+    xs = np.sort(s.get_state()["x"][:, 0])
+    gap = np.diff(xs).max()  # measured: 2.7 dx with tearing, 1.2 dx without (the plastic bar necks)
+    if tears:
+        assert gap > 2 / 32  # the pieces have parted
+        assert s.get_state()["ep"].max() >= 0.1  # fully cracked particles
+    else:
+        assert gap < 1.5 / 32

@@ -26,7 +26,7 @@ def _sim_defaults() -> dict:
         return {"backend": "auto", "n_grid": 32, "domain_size": 1.0, "fps": 30.0, "n_frames": 150,
                 "dt_mode": "adaptive", "cfl": 0.5, "substep_dt": 1e-4, "dt_min": 1e-6, "max_substeps": 200,
                 "sort_particles": True, "stability": {"j_min": 0.05, "j_max": 20.0, "max_speed": 100.0},
-                "compression": 1}
+                "compression": "none", "compression_level": 1, "rest": {"enabled": True, "speed": 0.01, "duration": 0.5}}
 
 
 def _scene(tmp_path, E_can: float = 2.0e5):
@@ -119,23 +119,39 @@ def test_forward_keeps_last_stable_state_when_unstable(tmp_path):
                 assert np.isfinite(f["keyframes"][str(k)][name][()]).all()
 
 
-def test_final_writes_visible_gaussians_per_frame(tmp_path):
+def test_final_writes_carrier_particles_per_frame(tmp_path):
+    from physgs_steps.final_frames import FORMAT, FinalFrames
+    from physgs_steps.metrics import physical_figures
+    from physgs_steps.physical import figures_from_file
+
     inputs = _scene(tmp_path)
     out = tmp_path / "final.h5"
     simulate.run_final(inputs, {"frames": str(out)}, _cfg(), LOG)
     with h5py.File(inputs["particles"]) as p:
         n_g = int(p.attrs["n_gaussians"])
         x_in = p["x"][:n_g]
-    with h5py.File(out) as f:
-        assert f["x"].shape == (7, n_g, 3) and f["F"].shape == (7, n_g, 3, 3)
-        assert f["x"].chunks == (1, n_g, 3) and f["x"].compression == "gzip"
-        assert np.array_equal(f["gaussian_index"][()], np.arange(n_g))
-        assert np.allclose(f["time"][()], np.arange(7) / 30.0)
-        assert np.allclose(f["x"][0], x_in, atol=1e-6)
-        assert np.isfinite(f["x"][()]).all() and np.isfinite(f["F"][()]).all()
+    with h5py.File(out) as f:  # no 'driver' in this particles.h5: the non-filled rows are stored
+        assert f.attrs["format"] == FORMAT
+        assert f["x"].shape == (7, n_g, 3) and f["F_minus_I"].shape == (7, n_g, 3, 3)
+        assert f["x"].chunks == (1, n_g, 3) and f["x"].compression is None and f["F_minus_I"].dtype == np.float16
+        assert np.array_equal(f["particle_index"][()], np.arange(n_g))
+        assert np.array_equal(f["frame_row"][()], np.arange(7))  # nothing rests while falling
         stats = json.loads(f.attrs["stats"])
-        for key in ("substeps_per_frame", "simulate_seconds", "peak_rss_mb", "stable", "max_cfl", "cfl_capped_frames"):
+        for key in ("substeps_per_frame", "simulate_seconds", "peak_rss_mb", "stable", "max_cfl", "cfl_capped_frames",
+                    "rest", "held_frames"):
             assert key in stats
+    with FinalFrames(out) as fr:
+        assert np.allclose(fr.time, np.arange(7) / 30.0)
+        assert np.allclose(fr.x(0), x_in, atol=1e-6)
+        assert all(np.isfinite(fr.x(t)).all() and np.isfinite(fr.F(t)).all() for t in range(7))
+        frame, lo, hi = fr.motion_box  # no transform.json given: the sim frame
+        assert frame == "sim"
+        assert (lo <= x_in.min(0) + 0.02).all() and (hi >= x_in.max(0) - 0.02).all()
+    # the figures accumulated while simulating are those of the stored frames (up to float16 F)
+    stored, again = physical_figures(str(out)), figures_from_file(str(out))
+    assert stored["checks"] == again["checks"] and stored["checks"]["moved"]
+    assert stored["max_displacement"]["value"] == pytest.approx(again["max_displacement"]["value"], rel=1e-6)
+    assert stored["det_F_max"]["value"] == pytest.approx(again["det_F_max"]["value"], abs=3e-3)
 
 
 def test_final_fails_clearly_and_writes_nothing(tmp_path):

@@ -91,7 +91,7 @@ def test_fully_pinned_scene(tmp_path):
     doc = stage.pinned_params(scene, clusters)
     b, a = doc["instances"]
     assert (b["label"], b["name"], b["E"], b["density"], b["velocity"]) == (0, "b", 3e5, 800.0, [0.0, 0.0, -1.0])
-    assert a["material"] == "sand" and a["plasticity"] == "drucker_prager"
+    assert a["material"] == "sand" and a["plasticity"] == "mohr_coulomb"
     assert all(i["provenance"]["source"] == "pinned" for i in doc["instances"])
     # the stage with any backend gives the same values without asking anything
     out, summary = run_stage(tmp_path, scene, [10, 5], [1, 0], backend="qwen3vl")

@@ -116,11 +116,28 @@ def test_pins_win_over_answers(kb):
     ({"density": 0}, "scene.instances[2].density"), ({"E": float("nan")}, "scene.instances[2].E"),
     ({"E": "1e5"}, "scene.instances[2].E"), ({"material": "kryptonite"}, "scene.instances[2].material"),
     ({"elasticity": "magic"}, "scene.instances[2].elasticity"), ({"friction_angle": 95}, "scene.instances[2].friction_angle"),
+    ({"fracture_strain": 0}, "scene.instances[2].fracture_strain"),
+    ({"fracture_softening": -0.1}, "scene.instances[2].fracture_softening"),
 ])
 def test_bad_pins_are_config_errors(kb, entry, key):
     with pytest.raises(ConfigError) as ei:
         V.check_pins(entry, 2, kb)
     assert key in str(ei.value)
+
+
+def test_tearing_is_opt_in_by_pin(kb):
+    """No KB material tears by default; a scene pin turns tearing on for its instance, through
+    both the answer path and the pin-only path (merge_pins)."""
+    assert all(e["plasticity_params"].get("fracture_strain") is None for e in kb.values())
+    pins = V.check_pins({"material": "bread", "fracture_strain": 0.03, "fracture_softening": 0.1}, 0, kb)
+    vals, _ = V.merge_pins(base(kb), pins, kb)
+    assert vals["plasticity_params"]["fracture_strain"] == 0.03
+    assert vals["plasticity_params"]["fracture_softening"] == 0.1
+    vals, _ = V.finalize_answer(answer(material="bread", plasticity="von_mises"), base(kb),
+                                {"fracture_strain": 0.05}, kb)
+    assert vals["plasticity_params"]["fracture_strain"] == 0.05
+    vals, _ = V.merge_pins(base(kb), V.check_pins({"material": "bread"}, 0, kb), kb)
+    assert vals["plasticity_params"]["fracture_strain"] is None
 
 
 def test_velocity():
@@ -141,6 +158,6 @@ def test_fully_pinned_rules(kb):
 
 def test_merge_pins_material_preset_and_overrides(kb):
     vals, notes = V.merge_pins(base(kb), {"material": "sand", "E": 7e5}, kb)
-    assert vals["material"] == "sand" and vals["E"] == 7e5 and vals["plasticity"] == "drucker_prager"
+    assert vals["material"] == "sand" and vals["E"] == 7e5 and vals["plasticity"] == "mohr_coulomb"
     vals, notes = V.merge_pins(base(kb), {"plasticity": "von_mises"}, kb)
     assert vals["plasticity_params"]["yield_stress"] is not None and notes[0]["action"] == "filled"

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from physgs_steps.carrier import build_carrier, write_carrier
 from physgs_steps.config import load_schema, section_defaults, validate
 from physgs_steps.errors import ConfigError, InputError, RenderError
 from physgs_steps.gaussians import GaussianScene
@@ -37,16 +38,28 @@ def _make_inputs(d, n=600, frames=T, nan_frame=None):
     sim = t.to_sim_scene(src)
     save_gaussians(sim, d / "scene.ply")
     write_json(d / "transform.json", t.to_dict())
-    with h5py.File(d / "final.h5", "w") as f:
-        x = np.stack([sim.means - [0, 0, 0.02 * k] for k in range(frames)]).astype(np.float32)
-        F = np.tile(np.eye(3, dtype=np.float32), (frames, n, 1, 1))
-        F[:, :, 2, 2] = np.linspace(1.0, 0.7, frames)[:, None]
-        if nan_frame is not None:
-            x[nan_frame, :5] = np.nan
-        f["x"], f["F"] = x, F
-        f["gaussian_index"] = np.arange(n, dtype=np.int64)
-        f["time"] = np.arange(frames) / 30.0
-    return {"frames": str(d / "final.h5"), "scene": str(d / "scene.ply"), "transform": str(d / "transform.json")}
+    x = np.stack([sim.means - [0, 0, 0.02 * k] for k in range(frames)]).astype(np.float32)
+    F = np.tile(np.eye(3, dtype=np.float32), (frames, n, 1, 1))
+    F[:, :, 2, 2] = np.linspace(1.0, 0.7, frames)[:, None]
+    if nan_frame is not None:
+        x[nan_frame, :5] = np.nan
+    write_final_h5(d / "final.h5", x, F, np.arange(frames) / 30.0, to_source=t.to_source)
+    rows = np.arange(n)  # every gaussian is a particle ('gaussians' mode): identity carrier
+    write_carrier(d / "carrier.h5", build_carrier(sim.means, np.zeros(n, np.int32), sim.means, np.zeros(n, np.int32),
+                                                  rows, "gaussians", 1, 0.01))
+    return {"frames": str(d / "final.h5"), "scene": str(d / "scene.ply"), "transform": str(d / "transform.json"),
+            "carrier": str(d / "carrier.h5")}
+
+
+def write_final_h5(path, x, F, time, hold=(), to_source=None):
+    """final.h5 (format 2) with frames x [T, M, 3], F [T, M, 3, 3]; frames in ``hold`` repeat the one before."""
+    from physgs_steps.final_frames import FinalWriter
+
+    with h5py.File(path, "w") as f:
+        w = FinalWriter(f, np.arange(x.shape[1]), time, to_source=to_source)
+        for k in range(len(time)):
+            w.hold(k) if k in hold else w.frame(k, x[k], F[k])
+        w.finish({"stats": {"test": True}})
 
 
 def _outputs(d):
@@ -154,15 +167,28 @@ def test_bad_files_and_config(tmp_path):
     out = _outputs(tmp_path)
     with h5py.File(tmp_path / "bad.h5", "w") as f:
         f["x"] = np.zeros((2, 600, 3), np.float32)
+    with pytest.raises(InputError, match="bad.h5.*format None"):  # an old or foreign file
+        run(dict(inputs, frames=str(tmp_path / "bad.h5")), out, _cfg(), LOG)
+    with h5py.File(tmp_path / "bad.h5", "a") as f:
+        f.attrs["format"] = "physgs-final/2"
     with pytest.raises(InputError, match="missing datasets"):
         run(dict(inputs, frames=str(tmp_path / "bad.h5")), out, _cfg(), LOG)
     with h5py.File(tmp_path / "bad2.h5", "w") as f:
+        f.attrs["format"] = "physgs-final/2"
         f["x"] = np.zeros((2, 600, 3), np.float32)
-        f["F"] = np.zeros((2, 600, 3, 3), np.float32)
-        f["gaussian_index"] = np.arange(600, dtype=np.int64) + 5
-        f["time"] = np.zeros(2)
-    with pytest.raises(InputError, match="gaussian_index spans"):
+        f["F_minus_I"] = np.zeros((2, 600, 3, 3), np.float16)
+        f["particle_index"] = np.arange(600, dtype=np.int64)
+        f["time"] = np.zeros(3)
+        f["frame_row"] = np.array([0, 1, 2], np.int32)
+    with pytest.raises(InputError, match="frame_row spans"):
         run(dict(inputs, frames=str(tmp_path / "bad2.h5")), out, _cfg(), LOG)
+    with pytest.raises(InputError, match="carrier.h5.*has 599 gaussians but scene.ply has 600"):
+        from physgs_steps.carrier import load_carrier
+
+        c = load_carrier(inputs["carrier"])
+        c.index, c.weight, c.static = c.index[:-1], c.weight[:-1], c.static[:-1]
+        write_carrier(tmp_path / "carrier.h5", c)
+        run(inputs, out, _cfg(), LOG)
     schema = load_schema("render.schema.yaml")
     with pytest.raises(ConfigError, match="render.width"):
         validate({"width": 0}, schema, "test", "render")

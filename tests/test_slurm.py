@@ -377,7 +377,8 @@ def compare_runs(local: Path, remote: Path) -> None:
                     np.testing.assert_array_equal(fa[k][()], fb[k][()], err_msg=f"{rel}:{k}")
         elif name == "final.h5":
             with h5py.File(a[rel]) as fa, h5py.File(b[rel]) as fb:
-                np.testing.assert_array_equal(fa["gaussian_index"][()], fb["gaussian_index"][()], err_msg=rel)
+                np.testing.assert_array_equal(fa["particle_index"][()], fb["particle_index"][()], err_msg=rel)
+                np.testing.assert_array_equal(fa["frame_row"][()], fb["frame_row"][()], err_msg=rel)
                 assert_positions_close(fa["x"][()], fb["x"][()], rel)
         elif name == "forward.h5":
             with h5py.File(a[rel]) as fa, h5py.File(b[rel]) as fb:

@@ -4,6 +4,7 @@
     physgs stage fill bear                # run one stage of a target (inputs must exist)
     physgs stage forward_sim bear --step it0
     physgs stages bear                    # every stage of a target in order, in this process
+    physgs plan benchmark/cpu/runs/bear/variants/baseline   # a benchmark run (README "Regenerating the benchmark")
     physgs check                          # every problem of the config and of every scene file
     physgs bench pipeline bear            # time the whole pipeline per structure (pipeline_bench.py)
 
@@ -45,7 +46,7 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
         return {"scene": p("scene")}, {"labels": p("labels"), "clusters": p("clusters")}, plan.cfgs["cluster"]
     if name == "fill":
         return ({"scene": p("scene"), "transform": p("transform"), "labels": p("labels")},
-                {"particles": p("particles"), "report": p("fill_report")}, plan.cfgs["fill"])
+                {"particles": p("particles"), "carrier": p("carrier"), "report": p("fill_report")}, plan.cfgs["fill"])
     if name == "vlm_params":
         return ({"scene": p("scene"), "labels": p("labels"), "clusters": p("clusters")},
                 {"params": p("params0")}, plan.cfgs["params"])
@@ -54,7 +55,10 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
     if name in ("forward_sim", "final_sim"):
         step = step or ("it0" if name == "forward_sim" else plan.steps[-1])
         out = {"keyframes": p("forward", step)} if name == "forward_sim" else {"frames": p("final")}
-        return {"particles": p("particles"), "params": p("params", step)}, out, plan.cfgs["sim"]
+        ins = {"particles": p("particles"), "params": p("params", step)}
+        if name == "final_sim":
+            ins["transform"] = p("transform")
+        return ins, out, plan.cfgs["sim"]
     if name == "bgdo_update":
         if step is None or step == "it0":
             raise PhysGSError("bgdo_update needs --step it<i>-<id> with i >= 1; the plan's steps: " + ", ".join(plan.steps))
@@ -62,7 +66,7 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
         return ({"keyframes": p("forward", prev), "params": p("params", prev)},
                 {"params": p("params", step)}, plan.cfgs["bgdo"])
     if name == "render":
-        return ({"frames": p("final"), "scene": p("scene"), "transform": p("transform")},
+        return ({"frames": p("final"), "scene": p("scene"), "transform": p("transform"), "carrier": p("carrier")},
                 {"video": p("video"), "contact_sheet": p("contact_sheet"), "report": p("render_report")},
                 plan.cfgs["render"])
     if name == "metrics":
@@ -101,8 +105,7 @@ def main(argv=None) -> int:
         return bench_main(args.rest)
     try:
         cfg = C.load_config(args.config)
-        scene, abl = P.parse_target(args.target)
-        plan = P.make_plan(cfg, scene, abl)
+        plan = P.plan_for_target(cfg, args.target)
         if args.cmd == "plan":
             print(json.dumps({"target": plan.target, "ids": plan.ids, "steps": plan.steps,
                               "paths": {k: plan.path(k) for k in ("scene", "labels", "particles", "params0", "final", "video")},

@@ -33,6 +33,13 @@ normalised domain) on the gaussian means. Here:
   Each join is a warning and a ``fragments`` record in clusters.json. An unmatched cluster
   that stays records its nearest instance and the gap (``unmatched``), so that a fully
   pinned scene can say what to change.
+* **Static surroundings and static instances.** Gaussians that ``prepare`` marked static
+  (outside ``region.box``: extra ``static`` of scene.ply) are not clustered; their label is
+  ``STATIC`` (-1). Instances left out of ``region.instances`` (cluster labels, or the name
+  or hint of a scene ``instances`` entry) or pinned ``static: true`` keep their label but
+  are listed in labels.npz ``static_instances`` and flagged ``static`` in clusters.json:
+  the fill stage gives them no particles, they are drawn at rest (their points inside the
+  domain are stored as collider geometry, particles.h5 ``static_x``).
 
 Bad input: all gaussians labelled noise -> ConfigError naming ``cluster.eps`` with the
 scene's typical neighbour distance; fewer clusters than listed instances (e.g. an eps that
@@ -51,6 +58,7 @@ from .errors import ConfigError, InputError
 from .runtime import atomic_path, write_json
 
 NOISE = -1
+STATIC = -1  # label of static surroundings (gaussians outside region.box) in labels.npz
 
 
 # ---------------------------------------------------------------------------- config
@@ -524,7 +532,17 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
         if not np.isfinite(points).all():
             raise InputError(inputs["scene"], "non-finite gaussian means")
         ply_labels = scene.extras.get("label")
-        labels, record = compute_labels(points, cfg.get("scene") or {}, ccfg, ply_labels, log)
+        static = np.asarray(scene.extras.get("static", np.zeros(scene.n)), dtype=np.int64) != 0
+        if static.all():
+            raise InputError(inputs["scene"], "every gaussian is marked static (outside region.box): nothing to simulate")
+        labels = np.full(scene.n, STATIC, np.int32)
+        labels[~static], record = compute_labels(points[~static], cfg.get("scene") or {}, ccfg,
+                                                 None if ply_labels is None else ply_labels[~static], log)
+        static_instances = select_static(record, cfg.get("scene") or {})
+        for r in record["instances"]:
+            r["static"] = r["label"] in static_instances
+        record["static_instances"] = static_instances
+        record["n_static_surroundings"] = int(static.sum())
         seconds = time.perf_counter() - t0
         peak = tracemalloc.get_traced_memory()[1] / 2**20
     finally:
@@ -535,22 +553,84 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     record["n_gaussians"] = int(points.shape[0])
     with atomic_path(outputs["labels"]) as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, labels=labels.astype(np.int32), seconds=np.float64(seconds), peak_alloc_mb=np.float64(peak))
+            np.savez(f, labels=labels.astype(np.int32), seconds=np.float64(seconds), peak_alloc_mb=np.float64(peak),
+                     static_instances=np.asarray(static_instances, np.int32))
     write_json(outputs["clusters"], record)
     sizes = [r["count"] for r in record["instances"]]
     log.info("%s: %d instances (sizes %s), %d noise gaussians joined their nearest cluster, %.2f s; wrote %s and %s",
              record["method"], record["n_instances"], sizes, record["noise"]["count"], seconds,
              outputs["labels"], outputs["clusters"])
+    if static.any() or static_instances:
+        log.info("static (drawn at rest, not simulated): %d gaussians outside region.box, instances %s",
+                 int(static.sum()), static_instances)
     return {"n_instances": record["n_instances"], "seconds": round(seconds, 3)}
 
 
+def select_static(record: dict, scene_cfg: dict) -> list[int]:
+    """Sorted labels of the instances that are not simulated: those left out of
+    ``region.instances`` and those whose scene entry says ``static: true``.
+
+    Args:
+        record: the clusters.json record (``instances`` with ``label`` and ``config_index``).
+        scene_cfg: the scene dict (``region``, ``instances``).
+
+    Raises:
+        ConfigError naming ``region.instances`` for a reference that matches nothing or a
+        selection that leaves nothing to simulate.
+    """
+    entries = scene_cfg.get("instances") or []
+    by_entry = {r["config_index"]: r["label"] for r in record["instances"] if r["config_index"] is not None}
+    k = len(record["instances"])
+    static = {by_entry[i] for i, e in enumerate(entries) if isinstance(e, dict) and e.get("static") and i in by_entry}
+    chosen = (scene_cfg.get("region") or {}).get("instances")
+    if chosen is not None:
+        keep = set()
+        for j, ref in enumerate(chosen):
+            key = f"region.instances[{j}]"
+            if isinstance(ref, bool) or not isinstance(ref, (int, str)):
+                raise ConfigError(key, f"must be a cluster label or an instance name/hint, got {ref!r}")
+            if isinstance(ref, int):
+                if not 0 <= ref < k:
+                    raise ConfigError(key, f"label {ref} does not exist: the clustering found {k} instances "
+                                           f"(labels 0..{k - 1}, 0 = largest; see clusters.json)")
+                keep.add(ref)
+                continue
+            hits = [i for i, e in enumerate(entries) if isinstance(e, dict) and ref in (e.get("name"), e.get("hint"))]
+            if not hits:
+                names = [e.get("name") for e in entries if isinstance(e, dict)]
+                raise ConfigError(key, f"{ref!r} is neither the name nor the hint of a scene instance (names: {names})")
+            labs = [by_entry[i] for i in hits if i in by_entry]
+            if not labs:
+                raise ConfigError(key, f"{ref!r} names a scene instance that matched no cluster")
+            keep.update(labs)
+        static |= set(range(k)) - keep
+    if len(static) >= k:
+        raise ConfigError("region.instances", f"every one of the {k} instances is static (region.instances / "
+                                              "static: true): nothing is left to simulate")
+    return sorted(int(v) for v in static)
+
+
 def load_labels(path) -> np.ndarray:
-    """[N] int32 labels from labels.npz (InputError when missing or malformed)."""
+    """[N] int32 labels from labels.npz: 0..K-1, STATIC (-1) for static surroundings
+    (InputError when missing or malformed)."""
     try:
         with np.load(path) as z:
             labels = np.asarray(z["labels"])
     except (OSError, KeyError, ValueError) as e:
         raise InputError(path, f"cannot read instance labels: {e}") from None
-    if labels.ndim != 1 or labels.dtype.kind not in "iu" or (labels.size and labels.min() < 0):
-        raise InputError(path, f"'labels' must be [N] non-negative integers, got {labels.dtype} {labels.shape}")
+    if labels.ndim != 1 or labels.dtype.kind not in "iu" or (labels.size and labels.min() < STATIC):
+        raise InputError(path, f"'labels' must be [N] integers >= {STATIC}, got {labels.dtype} {labels.shape}")
+    if labels.size and labels.max() < 0:
+        raise InputError(path, "every gaussian is static (label -1): nothing to simulate")
     return labels.astype(np.int32)
+
+
+def load_static_instances(path) -> list[int]:
+    """The labels of static instances listed in labels.npz (empty when the file has none)."""
+    try:
+        with np.load(path) as z:
+            if "static_instances" not in z:
+                return []
+            return sorted(int(v) for v in np.asarray(z["static_instances"]).ravel())
+    except (OSError, ValueError) as e:
+        raise InputError(path, f"cannot read instance labels: {e}") from None

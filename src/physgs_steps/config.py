@@ -333,7 +333,27 @@ def effective_section(cfg: dict, scene_cfg: dict, section: str, ablation: str | 
             raise ConfigError("ablations", f"unknown ablation '{ablation}'; known: {', '.join(sorted(cfg.get('ablations') or {}))}")
         merged = deep_merge(merged, abl.get(section))
     src = scene_cfg.get("_path", "scene") + (f" + ablation {ablation}" if ablation else "")
-    return validate(merged, load_schema(f"{section}.schema.yaml"), src, section)
+    return _validated_section(section, merged, src)
+
+
+_SECTION_MEMO: dict[tuple, dict] = {}
+
+
+def _validated_section(section: str, merged: dict, src: str) -> dict:
+    """validate() of a section, remembered per (section, content): the plans of many variants
+    validate the same sections (a benchmark has hundreds of plans). A valid section's result does
+    not depend on where it came from; an invalid one raises (naming ``src``) and is not kept."""
+    import json
+
+    try:
+        key = (section, json.dumps(merged))  # key order kept: Snakemake compares params as written
+    except (TypeError, ValueError):  # not JSON-able: validate without the memo
+        return validate(merged, load_schema(f"{section}.schema.yaml"), src, section)
+    if key not in _SECTION_MEMO:
+        if len(_SECTION_MEMO) > 4096:
+            _SECTION_MEMO.clear()
+        _SECTION_MEMO[key] = validate(merged, load_schema(f"{section}.schema.yaml"), src, section)
+    return copy.deepcopy(_SECTION_MEMO[key])
 
 
 def resolve_path(path: str) -> Path:

@@ -104,7 +104,7 @@ class InstanceFill:
 
     label: int
     n_gaussians: int
-    status: str = "pending"  # filled | empty | not_filled | flat | too_small | degenerate
+    status: str = "pending"  # filled | empty | not_filled | flat | too_small | degenerate | static
     reason: str | None = None
     n_candidates: int = 0
     n_inside: int = 0
@@ -119,10 +119,12 @@ class InstanceFill:
     seconds: dict = field(default_factory=dict)
     inside_points: np.ndarray | None = None  # [Q, 3] occupied candidates (dropped after the draw)
     inside_dist: np.ndarray | None = None  # [Q] distance to the instance's gaussians (global method)
+    n_gaussian_particles: int = 0  # gaussians that are particles (all, or the budget's representatives)
 
     def record(self) -> dict:
         keys = ["label", "n_gaussians", "status", "reason", "n_candidates", "n_inside", "volume",
-                "volume_source", "n_target", "n_filled", "duplicates", "voxel_size", "box_min", "box_max"]
+                "volume_source", "n_target", "n_filled", "duplicates", "voxel_size", "box_min", "box_max",
+                "n_gaussian_particles"]
         out = {k: getattr(self, k) for k in keys}
         out["seconds"] = {k: round(v, 4) for k, v in self.seconds.items()}
         return out
@@ -135,9 +137,12 @@ class FillResult:
     Attributes:
         x: [F, 3] float32 filled positions (sim frame).
         label: [F] int32 instance of each filled particle.
-        vol_gaussians: [N] float32 particle volume of the gaussians.
+        vol_gaussians: [N] float32 particle volume of the gaussians (of those that are particles).
         vol_filled: [F] float32 particle volume of the filled particles.
         instances: per label :class:`InstanceFill`.
+        gaussian_rows: [G] int64 ascending rows of scene.ply that are simulation particles
+            (every gaussian of a simulated instance in ``gaussians`` mode, one representative
+            per sub-cell in ``budget`` mode; never static gaussians).
     """
 
     x: np.ndarray
@@ -149,6 +154,7 @@ class FillResult:
     warnings: list
     peak_alloc_mb: float
     voxel_size: float | None = None
+    gaussian_rows: np.ndarray | None = None
 
 
 # ---------------------------------------------------------------------------- geometry helpers
@@ -555,14 +561,16 @@ def select_instance(inst: InstanceFill, pts: np.ndarray, fcfg: dict, rng: np.ran
 
 # ---------------------------------------------------------------------------- whole scene
 def fill_scene(means: np.ndarray, labels: np.ndarray, opacities: np.ndarray, log_scales: np.ndarray,
-               quats: np.ndarray, fcfg: dict, log: logging.Logger) -> FillResult:
-    """Fill the interior of every instance.
+               quats: np.ndarray, fcfg: dict, log: logging.Logger, static_labels=()) -> FillResult:
+    """Fill the interior of every instance and choose the gaussians that are particles.
 
     Args:
         means: [N, 3] gaussian means (sim frame).
-        labels: [N] int instance labels 0..K-1.
+        labels: [N] int instance labels 0..K-1, -1 for static surroundings (outside the
+            simulation region: never particles).
         opacities: [N] opacities in (0, 1); log_scales: [N, 3]; quats: [N, 4] (w, x, y, z).
         fcfg: validated ``fill`` section.
+        static_labels: instances that are not simulated (no particles at all).
 
     Returns:
         :class:`FillResult`.
@@ -574,7 +582,7 @@ def fill_scene(means: np.ndarray, labels: np.ndarray, opacities: np.ndarray, log
     tracemalloc.reset_peak()
     try:
         result = _fill_scene(means.astype(np.float64), np.asarray(labels, np.int32), opacities, log_scales,
-                             quats, fcfg, log, timer)
+                             quats, fcfg, log, timer, tuple(static_labels))
         result.peak_alloc_mb = tracemalloc.get_traced_memory()[1] / 2**20
     finally:
         if started:
@@ -593,6 +601,9 @@ def occupy_instances(means: np.ndarray, members: list, insts: list[InstanceFill]
     """
     k = len(insts)
     for i, inst in enumerate(insts):
+        if inst.status == "static":
+            log.info("instance %d/%d: %d gaussians, static (not simulated)", i + 1, k, inst.n_gaussians)
+            continue
         pts = means[members[i]]
         bad = degenerate_reason(pts, fcfg)
         if bad:
@@ -621,46 +632,90 @@ def cap_targets(insts: list[InstanceFill], max_filled: int, log: logging.Logger,
         inst.n_target = int(math.floor(inst.n_target * f))
 
 
-def assign_volumes(means: np.ndarray, members: list, insts: list[InstanceFill], dx: float) -> tuple[np.ndarray, list]:
-    """Particle volumes: V_k / (|C_k| + n_k) (shell volume for unfilled instances).
+def assign_volumes(means: np.ndarray, members: list, insts: list[InstanceFill], dx: float,
+                   particle_rows: list | None = None) -> tuple[np.ndarray, list]:
+    """Particle volumes: V_k / (G_k + n_k), G_k the instance's gaussians that are particles
+    (all of them, or the budget's representatives); shell volume for unfilled instances.
+
+    Args:
+        particle_rows: per label the rows of its gaussians that are particles (default: all).
 
     Returns:
-        ([N] float32 volume of each gaussian, per label the volume of its filled particles).
+        ([N] float32 volume of each gaussian, 0 where it is no particle; per label the volume
+        of its filled particles).
     """
     vol_g = np.zeros(means.shape[0], np.float32)
     per_filled = []
     for i, inst in enumerate(insts):
+        if inst.status == "static":
+            per_filled.append(0.0)
+            continue
         if inst.n_filled == 0 or inst.volume <= 0:
             inst.volume = shell_volume(means[members[i]], dx / 2.0)
             inst.volume_source = "cells of side dx/2 holding its gaussians (not filled)"
-        v = inst.volume / max(inst.n_gaussians + inst.n_filled, 1)
-        vol_g[members[i]] = v
+        rows = members[i] if particle_rows is None else particle_rows[i]
+        v = inst.volume / max(len(rows) + inst.n_filled, 1)
+        vol_g[rows] = v
         per_filled.append(v)
     return vol_g, per_filled
 
 
-def _fill_scene(means, labels, opacities, log_scales, quats, fcfg, log, timer) -> FillResult:
+def particle_gaussians(means: np.ndarray, members: list, insts: list[InstanceFill], fcfg: dict) -> list[np.ndarray]:
+    """Per instance the rows of its gaussians that are simulation particles.
+
+    ``particles: gaussians`` keeps them all (the paper); ``budget`` keeps one per sub-cell of
+    side dx / particles_per_cell^(1/3) (:func:`physgs_steps.carrier.representatives`).
+    Static instances get none.
+    """
+    from .carrier import particle_spacing, representatives
+
+    cell = particle_spacing(grid_dx(fcfg), fcfg["particles_per_cell"])
+    out = []
+    for i, inst in enumerate(insts):
+        rows = members[i]
+        if inst.status == "static":
+            rows = rows[:0]
+        elif particles_mode(fcfg) == "budget":
+            rows = rows[representatives(means[rows], cell)]
+        inst.n_gaussian_particles = int(rows.size)
+        out.append(rows)
+    return out
+
+
+def particles_mode(fcfg: dict) -> str:
+    """``budget`` or ``gaussians`` (``fill.particles``, null = budget when the stage runs alone)."""
+    return fcfg.get("particles") or "budget"
+
+
+def _fill_scene(means, labels, opacities, log_scales, quats, fcfg, log, timer, static_labels=()) -> FillResult:
     rng = np.random.default_rng(fcfg["seed"])
     k = int(labels.max()) + 1 if labels.size else 0
     insts = [InstanceFill(label=i, n_gaussians=int((labels == i).sum())) for i in range(k)]
     members = [np.flatnonzero(labels == i) for i in range(k)]
+    for i in static_labels:
+        if 0 <= i < k:
+            insts[i].status, insts[i].reason = "static", "static instance: no particles (drawn at rest)"
+    active = [inst for inst in insts if inst.status != "static"]
     warnings: list[str] = []
     voxel = None
     gauss = {"log_scales": log_scales, "quats": quats, "opacities": opacities}
     with timer.section("occupancy"):
         if fcfg["method"] == "none":
-            for inst in insts:
+            for inst in active:
                 inst.status, inst.reason = "not_filled", "fill.method is 'none' (w/o IPF)"
         elif fcfg["method"] == "global":
-            voxel = auto_voxel_size(means, fcfg)
-            occupy_global(means, labels, gauss, fcfg, rng, voxel, insts, log)
+            sim = labels >= 0
+            sim &= ~np.isin(labels, [inst.label for inst in insts if inst.status == "static"])
+            voxel = auto_voxel_size(means[sim], fcfg)
+            occupy_global(means[sim], labels[sim], {key: v[sim] for key, v in gauss.items()}, fcfg, rng, voxel,
+                          active, log)
         else:
             occupy_instances(means, members, insts, gauss, fcfg, rng, log, warnings)
-    cap_targets(insts, fcfg["max_filled"], log, warnings)
+    cap_targets(active, fcfg["max_filled"], log, warnings)
     xs = []
     with timer.section("selection"):
         for i, inst in enumerate(insts):
-            xs.append(select_instance(inst, means[members[i]], fcfg, rng))
+            xs.append(select_instance(inst, means[members[i]], fcfg, rng) if inst.status != "static" else np.zeros((0, 3)))
             inst.n_filled = int(xs[-1].shape[0])
             if inst.n_filled < inst.n_target:
                 msg = (f"instance {i}: only {inst.n_inside} occupied candidates for {inst.n_target} particles; "
@@ -668,7 +723,9 @@ def _fill_scene(means, labels, opacities, log_scales, quats, fcfg, log, timer) -
                 log.warning("%s", msg)
                 warnings.append(msg)
             inst.inside_points = inst.inside_dist = None
-    vol_g, per_filled = assign_volumes(means, members, insts, grid_dx(fcfg))
+    with timer.section("budget"):
+        rows = particle_gaussians(means, members, insts, fcfg)
+    vol_g, per_filled = assign_volumes(means, members, insts, grid_dx(fcfg), rows)
     counts = [x.shape[0] for x in xs]
     return FillResult(
         x=np.concatenate(xs).astype(np.float32) if xs else np.zeros((0, 3), np.float32),
@@ -676,7 +733,7 @@ def _fill_scene(means, labels, opacities, log_scales, quats, fcfg, log, timer) -
         vol_gaussians=vol_g,
         vol_filled=np.repeat(np.asarray(per_filled, np.float32), counts),
         instances=insts, seconds=dict(timer.seconds), warnings=warnings, peak_alloc_mb=0.0,
-        voxel_size=voxel)
+        voxel_size=voxel, gaussian_rows=np.sort(np.concatenate(rows)) if rows else np.zeros(0, np.int64))
 
 
 # ---------------------------------------------------------------------------- output
@@ -685,68 +742,113 @@ def filled_scale(fcfg: dict) -> float:
     return float(fcfg["filled_scale"]) if fcfg["filled_scale"] else grid_dx(fcfg) / 10.0
 
 
-def write_particles(path, scene, labels: np.ndarray, result: FillResult, fcfg: dict) -> int:
+def write_particles(path, scene, labels: np.ndarray, result: FillResult, fcfg: dict, drivers: np.ndarray,
+                    static_x: np.ndarray) -> int:
     """Write particles.h5 (CONTRACTS.md) plus per-particle ``opacity``, ``log_scales``, ``quats``.
 
-    Rows 0..N-1 are scene.ply's gaussians in order, then the filled particles.
-    Returns P.
+    Rows 0..G-1 are the gaussians that are particles (scene.ply rows ``gaussian_row``,
+    ascending), then the filled particles; ``driver`` marks the particles whose states
+    final.h5 stores (carrier.h5 ``drivers``), ``static_x`` holds points of the static
+    surroundings inside the domain (collider geometry). Returns P.
     """
     import h5py
 
-    n, f = scene.n, result.x.shape[0]
-    x = np.concatenate([scene.means.astype(np.float32), result.x])
-    label = np.concatenate([labels.astype(np.int32), result.label])
-    filled = np.concatenate([np.zeros(n, bool), np.ones(f, bool)])
-    vol = np.concatenate([result.vol_gaussians, result.vol_filled]).astype(np.float32)
-    opacity = np.concatenate([scene.opacities, np.zeros(f, np.float32)]).astype(np.float32)
-    log_scales = np.concatenate([scene.log_scales, np.full((f, 3), math.log(filled_scale(fcfg)), np.float32)])
-    quats = np.concatenate([scene.quats, np.tile(np.array([[1, 0, 0, 0]], np.float32), (f, 1))])
+    rows = result.gaussian_rows
+    g, f = rows.size, result.x.shape[0]
+    x = np.concatenate([scene.means[rows].astype(np.float32), result.x])
+    label = np.concatenate([labels[rows].astype(np.int32), result.label])
+    filled = np.concatenate([np.zeros(g, bool), np.ones(f, bool)])
+    vol = np.concatenate([result.vol_gaussians[rows], result.vol_filled]).astype(np.float32)
+    opacity = np.concatenate([scene.opacities[rows], np.zeros(f, np.float32)]).astype(np.float32)
+    log_scales = np.concatenate([scene.log_scales[rows], np.full((f, 3), math.log(filled_scale(fcfg)), np.float32)])
+    quats = np.concatenate([scene.quats[rows], np.tile(np.array([[1, 0, 0, 0]], np.float32), (f, 1))])
+    driver = np.zeros(g + f, bool)
+    driver[drivers] = True
     with atomic_path(path) as tmp:
         with h5py.File(tmp, "w") as h:
             h.create_dataset("x", data=x)
             h.create_dataset("label", data=label)
             h.create_dataset("filled", data=filled)
             h.create_dataset("vol", data=vol)
+            h.create_dataset("gaussian_row", data=np.concatenate([rows, np.full(f, -1)]).astype(np.int64))
+            h.create_dataset("driver", data=driver)
             h.create_dataset("opacity", data=opacity)
             h.create_dataset("log_scales", data=log_scales.astype(np.float32))
             h.create_dataset("quats", data=quats.astype(np.float32))
-            h.attrs["n_gaussians"] = n
+            h.create_dataset("static_x", data=np.asarray(static_x, np.float32).reshape(-1, 3))
+            h.attrs["n_gaussians"] = scene.n
             h.attrs["n_instances"] = int(labels.max()) + 1 if labels.size else 0
+            h.attrs["particles"] = particles_mode(fcfg)
             h.attrs["config"] = json.dumps(fcfg, sort_keys=True)
             h.attrs["dx"] = grid_dx(fcfg)
-    return n + f
+    return g + f
+
+
+def static_points(means: np.ndarray, static: np.ndarray, fcfg: dict) -> np.ndarray:
+    """[S, 3] points of the static gaussians (``static`` [N] bool) inside the domain [0, 1]^3,
+    thinned to one per sub-cell of the particle spacing: the geometry static surroundings
+    and static instances give to colliders."""
+    from .carrier import particle_spacing, representatives
+
+    inside = static & ((means >= 0.0) & (means <= 1.0)).all(axis=1)
+    pts = means[inside].astype(np.float64)
+    if pts.shape[0] == 0:
+        return np.zeros((0, 3), np.float32)
+    keep = representatives(pts, particle_spacing(grid_dx(fcfg), fcfg["particles_per_cell"]))
+    return pts[keep].astype(np.float32)
 
 
 def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     """Stage entry point.
 
     inputs: ``{"scene": scene.ply, "labels": labels.npz, "transform": transform.json}``.
-    outputs: ``{"particles": particles.h5, "report": fill_report.json}``.
+    outputs: ``{"particles": particles.h5, "carrier": carrier.h5, "report": fill_report.json}``.
     cfg: ``{"fill": {...}, "scene": {...}}``.
     """
     from . import fill_report
-    from .cluster import load_labels
+    from .carrier import build_carrier, particle_spacing, write_carrier
+    from .cluster import load_labels, load_static_instances
     from .scene_io import load_gaussians
 
     fcfg = fill_config(cfg)
     t0 = time.perf_counter()
     scene = load_gaussians(inputs["scene"], log=log)
     labels = load_labels(inputs["labels"])
+    static_labels = load_static_instances(inputs["labels"])
     if labels.shape[0] != scene.n:
         raise InputError(inputs["labels"], f"has {labels.shape[0]} labels but {inputs['scene']} has {scene.n} gaussians "
                                            "(stale labels: re-run the cluster stage)")
     t_load = time.perf_counter() - t0
-    result = fill_scene(scene.means, labels, scene.opacities, scene.log_scales, scene.quats, fcfg, log)
+    result = fill_scene(scene.means, labels, scene.opacities, scene.log_scales, scene.quats, fcfg, log, static_labels)
     t1 = time.perf_counter()
-    p = write_particles(outputs["particles"], scene, labels, result, fcfg)
-    t_write = time.perf_counter() - t1
+    mode = particles_mode(fcfg)
+    rows = result.gaussian_rows
+    part_x = np.concatenate([scene.means[rows].astype(np.float64), result.x.astype(np.float64)])
+    part_label = np.concatenate([labels[rows], result.label]).astype(np.int32)
+    part_row = np.concatenate([rows, np.full(result.x.shape[0], -1)]).astype(np.int64)
+    spacing = particle_spacing(grid_dx(fcfg), fcfg["particles_per_cell"])
+    carrier = build_carrier(scene.means.astype(np.float64), labels, part_x, part_label, part_row, mode,
+                            fcfg["carrier_neighbors"], spacing)
+    result.seconds["carrier"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    static_x = static_points(scene.means, carrier.static, fcfg)
+    p = write_particles(outputs["particles"], scene, labels, result, fcfg, carrier.drivers, static_x)
+    write_carrier(outputs["carrier"], carrier)
+    t_write = time.perf_counter() - t2
     result.seconds["load"] = t_load
     result.seconds["write"] = t_write
     seconds = time.perf_counter() - t0
-    log.info("filled %d particles (%s, occupancy %s, mcis %s) into %d instances: %d particles in %.2f s; wrote %s",
-             result.x.shape[0], fcfg["method"], fcfg["occupancy"], fcfg["mcis"], len(result.instances), p, seconds,
-             outputs["particles"])
+    log.info("filled %d particles (%s, occupancy %s, mcis %s) into %d instances; particles: %s, %d of %d gaussians "
+             "+ %d filled = %d particles (%d drive the %d simulated gaussians, %d static gaussians, %d static "
+             "collider points) in %.2f s; wrote %s, %s", result.x.shape[0], fcfg["method"], fcfg["occupancy"],
+             fcfg["mcis"], len(result.instances), mode, rows.size, scene.n, result.x.shape[0], p,
+             carrier.drivers.size, int((~carrier.static).sum()), int(carrier.static.sum()), static_x.shape[0],
+             seconds, outputs["particles"], outputs["carrier"])
     report = fill_report.build_report(scene, labels, result, fcfg, cfg.get("scene") or {}, inputs, seconds, log)
+    report.update({"particles": mode, "n_particles": p, "n_gaussian_particles": int(rows.size),
+                   "n_drivers": int(carrier.drivers.size), "n_static_gaussians": int(carrier.static.sum()),
+                   "n_static_points": int(static_x.shape[0]), "carrier_neighbors": carrier.neighbors,
+                   "particle_spacing": spacing})
     write_json(outputs["report"], report)
     log.info("wrote %s", outputs["report"])
     return {"n_filled": int(result.x.shape[0]), "n_particles": p, "seconds": round(seconds, 3)}

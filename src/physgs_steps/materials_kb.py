@@ -27,7 +27,7 @@ import yaml
 from .errors import ConfigError, InputError
 
 ELASTICITY_MODELS = ("fixed_corotated", "neo_hookean", "stvk_hencky", "volume", "fluid")
-PLASTICITY_MODELS = ("identity", "j_clamp", "von_mises", "drucker_prager", "fluid")
+PLASTICITY_MODELS = ("identity", "j_clamp", "von_mises", "drucker_prager", "mohr_coulomb", "fluid")
 MODEL_NAMES = {"elasticity": ELASTICITY_MODELS, "plasticity": PLASTICITY_MODELS}
 
 # Spellings accepted for each canonical name (after lower-casing and mapping spaces and
@@ -45,20 +45,24 @@ _PLASTICITY_ALIASES = {
     "j_clamp": ["j_clamp", "jclamp", "sigma", "snow"],
     "von_mises": ["von_mises", "vonmises", "mises", "j2"],
     "drucker_prager": ["drucker_prager", "druckerprager", "drucker", "dp", "sand"],
+    "mohr_coulomb": ["mohr_coulomb", "mohrcoulomb", "mohr", "mc", "coulomb", "granular"],
     "fluid": ["fluid", "liquid"],
 }
 _ALIASES = {"elasticity": _ELASTICITY_ALIASES, "plasticity": _PLASTICITY_ALIASES}
 
 # Plasticity parameters every params.json entry carries (CONTRACTS.md), with the values used
 # when a model does not need them or an entry does not set them.
-PLASTICITY_PARAM_KEYS = ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max")
+PLASTICITY_PARAM_KEYS = ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max", "fracture_strain",
+                         "fracture_softening")
 PLASTICITY_PARAM_DEFAULTS: dict[str, float | None] = {
     "yield_stress": None, "friction_angle": None, "cohesion": 0.0, "j_min": 0.05, "j_max": 1.2,
+    "fracture_strain": None, "fracture_softening": 0.2,
 }
 # Parameters a plasticity model cannot run without.
 REQUIRED_PLASTICITY_PARAMS = {
     "identity": (), "fluid": (), "von_mises": ("yield_stress",),
-    "drucker_prager": ("friction_angle", "cohesion"), "j_clamp": ("j_min", "j_max"),
+    "drucker_prager": ("friction_angle", "cohesion"), "mohr_coulomb": ("friction_angle", "cohesion"),
+    "j_clamp": ("j_min", "j_max"),
 }
 
 _ENTRY_KEYS = {"elasticity", "plasticity", "E", "E_range", "E_real", "nu", "density",
@@ -118,7 +122,10 @@ def is_model_name(kind: str, name: Any) -> bool:
 
 
 def full_plasticity_params(params: dict | None) -> dict:
-    """All five plasticity parameters: ``params`` over :data:`PLASTICITY_PARAM_DEFAULTS`."""
+    """All plasticity parameters: ``params`` over :data:`PLASTICITY_PARAM_DEFAULTS`.
+
+    ``fracture_strain`` (null: the material never tears) and ``fracture_softening`` switch on
+    tearing for any plasticity model (mpm/materials.py, class Fracture)."""
     out = dict(PLASTICITY_PARAM_DEFAULTS)
     for k, v in (params or {}).items():
         out[k] = None if v is None else float(v)

@@ -13,10 +13,14 @@ The map from the source frame to the simulation frame (unit cube, z up) is
   ``transform.extent`` and its centre lands on ``transform.center``.
 * Before that, gaussians outside ``transform.crop_box`` (source frame) and below
   ``prepare.min_opacity`` are dropped.
+* ``region.box`` (source frame) chooses what is simulated: the transform is fitted to the
+  gaussians inside it; the others are *static surroundings*, kept in scene.ply (extra
+  vertex property ``static`` = 1), never clustered, filled or simulated, and drawn at rest
+  in every frame. They may lie anywhere, also outside the domain.
 
 Gaussians: means are mapped, log-scales get ``+ log s``, quaternions are pre-multiplied by
 the quaternion of R, SH coefficients stay in the source frame, extras are kept.  Every
-centre must then lie inside the domain less a wall margin of 3 cells of a 64^3 grid;
+simulated centre must then lie inside the domain less a wall margin of 3 cells of a 64^3 grid;
 otherwise a ConfigError names ``transform.extent`` or ``transform.center`` and the numbers
 (or, with ``prepare.drop_outside``, those gaussians are dropped).
 
@@ -179,6 +183,15 @@ def transform_config(scene_cfg: dict) -> dict:
     return tcfg
 
 
+def region_config(scene_cfg: dict) -> dict:
+    """The scene's ``region`` dict validated and merged with the defaults (scene_region.schema.yaml)."""
+    rcfg = _validated("scene_region", "region", scene_cfg.get("region"), scene_cfg.get("_path"))
+    box = rcfg["box"]
+    if box is not None and not (np.asarray(box[0]) < np.asarray(box[1])).all():
+        raise ConfigError("region.box", f"min {box[0]} must be below max {box[1]} on every axis", scene_cfg.get("_path"))
+    return rcfg
+
+
 def prepare_config(cfg: dict) -> dict:
     """The ``prepare`` section validated and merged with the defaults."""
     return _validated("prepare", "prepare", cfg.get("prepare"), None)
@@ -244,7 +257,7 @@ def fit_transform(means: np.ndarray, tcfg: dict, trim_quantile: float, source="s
 
 # ---------------------------------------------------------------------------- normalise
 def normalise_scene(scene: GaussianScene, tcfg: dict, pcfg: dict, source="scene",
-                    log: logging.Logger | None = None) -> tuple[GaussianScene, SceneTransform, dict]:
+                    log: logging.Logger | None = None, region_box=None) -> tuple[GaussianScene, SceneTransform, dict]:
     """Filter ``scene`` and map it into the simulation domain.
 
     Args:
@@ -252,14 +265,20 @@ def normalise_scene(scene: GaussianScene, tcfg: dict, pcfg: dict, source="scene"
         tcfg: validated ``transform`` config (:func:`transform_config`).
         pcfg: validated ``prepare`` config (:func:`prepare_config`).
         source: name of the source for messages.
+        region_box: [[min], [max]] source-frame box of what is simulated (``region.box``),
+            or None for everything.
 
     Returns:
         (scene in the sim frame with N_kept gaussians, transform, info) where info holds
-        ``dropped`` (counts for ``crop_box``, ``min_opacity``, ``outside``) and ``bounds_src``
-        (``{"min", "max"}`` of the kept centres in the source frame).
+        ``dropped`` (counts for ``crop_box``, ``min_opacity``, ``outside``), ``bounds_src``
+        (``{"min", "max"}`` of the kept simulated centres in the source frame) and
+        ``n_static`` (gaussians outside ``region_box``, marked by the extra ``static``).
     """
     log = log or logging.getLogger("physgs.prepare")
     dropped = {"crop_box": 0, "min_opacity": 0, "outside": 0, "oversized": 0}
+    if "static" in scene.extras:  # a scene.ply of an earlier run as the source: the region is decided anew
+        scene = GaussianScene(scene.means, scene.log_scales, scene.quats, scene.opacity_logits, scene.sh,
+                              {k: v for k, v in scene.extras.items() if k != "static"})
     check_appearance(scene, source, log)
     if tcfg["crop_box"] is not None:
         lo, hi = np.asarray(tcfg["crop_box"], dtype=np.float64)
@@ -277,7 +296,15 @@ def normalise_scene(scene: GaussianScene, tcfg: dict, pcfg: dict, source="scene"
             raise ConfigError("prepare.min_opacity", f"{pcfg['min_opacity']} drops all {scene.n} gaussians of "
                                                      f"{source} (largest opacity {float(scene.opacities.max()):.4g})")
         scene = scene.subset(keep) if dropped["min_opacity"] else scene
-    tf = fit_transform(scene.means, tcfg, pcfg["trim_quantile"], source)
+    static = np.zeros(scene.n, bool)
+    if region_box is not None:
+        lo, hi = np.asarray(region_box, dtype=np.float64)
+        static = ~((scene.means >= lo) & (scene.means <= hi)).all(axis=1)
+        if static.all():
+            raise ConfigError("region.box", f"box {lo.tolist()}..{hi.tolist()} contains none of the {scene.n} "
+                                            f"gaussians of {source} (bounds {_fmt(scene.means.min(0))}.."
+                                            f"{_fmt(scene.means.max(0))})")
+    tf = fit_transform(scene.means[~static], tcfg, pcfg["trim_quantile"], source)
     sim = tf.to_sim_scene(scene)
     sigma = np.exp(sim.log_scales.astype(np.float64)).max(axis=1)  # [N] largest std, domain units
     huge = ~(sigma <= MAX_SIM_SIGMA)
@@ -291,19 +318,22 @@ def normalise_scene(scene: GaussianScene, tcfg: dict, pcfg: dict, source="scene"
         dropped["oversized"] = int(huge.sum())
         log.warning("dropped %d gaussians wider than the domain (standard deviation above %g domain units, largest "
                     "%.3g source units): each would cover the whole view", dropped["oversized"], MAX_SIM_SIGMA, biggest)
-        sim, scene = sim.subset(~huge), scene.subset(~huge)
-    outside = ((sim.means < MARGIN) | (sim.means > 1.0 - MARGIN)).any(axis=1)
+        sim, scene, static = sim.subset(~huge), scene.subset(~huge), static[~huge]
+    outside = ((sim.means < MARGIN) | (sim.means > 1.0 - MARGIN)).any(axis=1) & ~static
     if outside.any():
         if not pcfg["drop_outside"]:
-            _raise_outside(sim.means, tcfg, source)
+            _raise_outside(sim.means[~static], tcfg, source)
         dropped["outside"] = int(outside.sum())
-        if outside.all():
+        if outside.sum() == (~static).sum():
             raise ConfigError("transform.center", f"every gaussian of {source} lies outside the domain margin")
         log.warning("dropped %d gaussians outside the domain [%.4f, %.4f]^3 (prepare.drop_outside)",
                     dropped["outside"], MARGIN, 1.0 - MARGIN)
         sim = sim.subset(~outside)
         scene = scene.subset(~outside)
-    return sim, tf, {"dropped": dropped, "bounds_src": _bounds(scene.means)}
+        static = static[~outside]
+    if static.any():
+        sim.extras["static"] = static
+    return sim, tf, {"dropped": dropped, "bounds_src": _bounds(scene.means[~static]), "n_static": int(static.sum())}
 
 
 def check_appearance(scene: GaussianScene, source, log: logging.Logger) -> None:
@@ -386,13 +416,15 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     """
     scene_cfg = cfg.get("scene") or {}
     tcfg = transform_config(scene_cfg)
+    rcfg = region_config(scene_cfg)
     pcfg = prepare_config(cfg)
     scene, source = load_source(inputs, scene_cfg, log)
     n_input = scene.n
     bounds_src_in = _bounds(scene.means)
-    sim, tf, info = normalise_scene(scene, tcfg, pcfg, source, log)
+    sim, tf, info = normalise_scene(scene, tcfg, pcfg, source, log, rcfg["box"])
     dropped = info["dropped"]
-    bounds_sim = _bounds(sim.means)
+    simulated = ~np.asarray(sim.extras.get("static", np.zeros(sim.n, bool)), bool)
+    bounds_sim = _bounds(sim.means[simulated])
     record = tf.to_dict()
     record.update({
         "source": source, "n_input": n_input, "n_kept": sim.n, "dropped": dropped,
@@ -400,14 +432,15 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
         "up_axis": tcfg["up_axis"], "extent": float(tcfg["extent"]),
         "trim_quantile": float(pcfg["trim_quantile"]), "min_opacity": float(pcfg["min_opacity"]),
         "margin": MARGIN, "sh_degree": sim.sh_degree, "extras": sorted(sim.extras),
+        "region_box": rcfg["box"], "n_static": info["n_static"],
     })
     save_gaussians(sim, outputs["scene"])
     write_json(outputs["transform"], record)
-    log.info("normalised %s: kept %d of %d gaussians (dropped %s), scale %.6g, rotation %s, "
-             "sim bounds %s..%s", source, sim.n, n_input, dropped, tf.scale, np.round(tf.R, 6).tolist(),
-             _fmt(bounds_sim["min"]), _fmt(bounds_sim["max"]))
+    log.info("normalised %s: kept %d of %d gaussians (dropped %s; %d of them static surroundings outside "
+             "region.box), scale %.6g, rotation %s, simulated bounds %s..%s", source, sim.n, n_input, dropped,
+             info["n_static"], tf.scale, np.round(tf.R, 6).tolist(), _fmt(bounds_sim["min"]), _fmt(bounds_sim["max"]))
     log.info("wrote %s and %s", outputs["scene"], outputs["transform"])
-    return {"n_input": n_input, "n_kept": sim.n, "dropped": dropped, "scale": tf.scale}
+    return {"n_input": n_input, "n_kept": sim.n, "dropped": dropped, "n_static": info["n_static"], "scale": tf.scale}
 
 
 def _bounds(points: np.ndarray) -> dict:

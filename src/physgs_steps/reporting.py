@@ -87,14 +87,15 @@ def write_csv(path: str | os.PathLike, rows: Sequence[dict], columns: Sequence[C
 
 
 @contextlib.contextmanager
-def figure(path: str | os.PathLike, size=(6.4, 4.2), dpi: int = 120) -> Iterator[tuple]:
-    """``(fig, ax)`` of a new matplotlib figure (Agg, no display), saved atomically to ``path`` (PNG)."""
+def figure(path: str | os.PathLike, size=(6.4, 4.2), dpi: int = 120, **subplots: Any) -> Iterator[tuple]:
+    """``(fig, ax)`` of a new matplotlib figure (Agg, no display), saved atomically to ``path`` (PNG).
+    ``subplots`` go to ``plt.subplots`` (e.g. ``nrows=2, sharex=True``: ``ax`` is then the array of axes)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=size)
+    fig, ax = plt.subplots(figsize=size, **subplots)
     try:
         yield fig, ax
         fig.tight_layout()

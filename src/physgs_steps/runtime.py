@@ -302,7 +302,20 @@ def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, lo
         summary.setdefault("cuda_peak_mb", round(cp, 1))
     log.info("stage %s done in %.2f s (peak RSS %.0f MiB); outputs %s", name, summary["seconds"],
              summary["peak_rss_mb"], {k: str(v) for k, v in outputs.items()})
+    log.info("%s%s", SUMMARY_PREFIX, json.dumps(summary, sort_keys=True, default=_summary_default))
     return summary
+
+
+# The last log line of a stage: its summary as one JSON object (the benchmark reads time spent
+# inside the stage and CUDA peaks from it: physgs_steps.benchmark.readers.stage_summary).
+SUMMARY_PREFIX = "stage summary: "
+
+
+def _summary_default(o: Any) -> Any:
+    try:
+        return _json_default(o)
+    except TypeError:
+        return str(o)
 
 
 def _remove_outputs(outputs: dict, log: logging.Logger) -> None:

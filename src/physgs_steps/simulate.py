@@ -12,10 +12,18 @@ simulate with :mod:`physgs_steps.mpm` under ``cfg["sim"]`` (sim.schema.yaml) and
   after it are left out, and ``stats`` records ``stable: false`` with the reason.  BGDO then
   sees the parameters that broke the run (a too stiff E for the substep cap shows up as huge
   stresses, a too soft one as large deformation) and corrects them.
-* ``run_final`` writes ``final.h5``: positions and deformation gradients of the visible
-  gaussians (rows of scene.ply, i.e. non-filled particles) for every frame, one gzip chunk per
-  frame.  An unstable run stops with a :class:`SimulationError` naming the instance, its
-  material and parameters and what to change; no output is written.
+* ``run_final`` writes ``final.h5`` (:mod:`physgs_steps.final_frames`): positions and
+  deformation gradients of the particles that carry the visible gaussians (particles.h5
+  ``driver``) for every frame, frames held at rest stored once, and the physical
+  plausibility figures accumulated on the way (:mod:`physgs_steps.physical`).  An unstable
+  run stops with a :class:`SimulationError` naming the instance, its material and
+  parameters and what to change; no output is written. With ``sim.on_unstable: keep`` it
+  writes the stable frames instead (fewer than ``n_frames``) with ``stats.stable = false`` and
+  the failure message (the benchmark's expected failures).
+
+Both detect rest (``sim.rest``, :mod:`physgs_steps.mpm.rest`): once everything has stopped
+moving and no force or enforced motion acts, no more substeps until the dynamics' schedule
+changes.
 """
 from __future__ import annotations
 
@@ -29,6 +37,7 @@ from .errors import ConfigError, InputError, SimulationError
 from .runtime import atomic_path, json_text, peak_rss_mb, read_json_input
 from .mpm.dynamics import Dynamics, describe_counts
 from .mpm.materials import Material
+from .mpm.rest import RestPolicy
 from .mpm.runner import RunResult, run_frames
 from .mpm.solver import MPMSolver
 from .mpm.stability import Thresholds, cfl_note
@@ -40,7 +49,9 @@ DEFAULT_KEY_FRAMES = (0.0, 0.5, 1.0)
 # ============================================================================ inputs
 def load_particles(path: str | Path) -> dict:
     """Read particles.h5: {"x" [P,3] f32, "label" [P] int32, "filled" [P] bool, "vol" [P] f32,
-    "n_gaussians"}.  Raises InputError on a missing/malformed file."""
+    "driver" [P] bool, "n_gaussians"}.  ``driver`` (the particles whose states final.h5 stores)
+    defaults to the non-filled rows when the file has none.  Raises InputError on a
+    missing/malformed file."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "particles file does not exist")
@@ -50,13 +61,14 @@ def load_particles(path: str | Path) -> dict:
             if missing:
                 raise InputError(path, f"missing datasets {missing}")
             out = {"x": f["x"][()], "label": f["label"][()], "filled": f["filled"][()].astype(bool), "vol": f["vol"][()]}
+            out["driver"] = f["driver"][()].astype(bool) if "driver" in f else ~out["filled"]
             n_g = f.attrs.get("n_gaussians")
     except OSError as e:
         raise InputError(path, f"not a readable HDF5 file: {e}") from None
     P = len(out["x"])
     if out["x"].ndim != 2 or out["x"].shape[1] != 3 or P == 0:
         raise InputError(path, f"x must have shape [P, 3] with P > 0, got {out['x'].shape}")
-    for k in ("label", "filled", "vol"):
+    for k in ("label", "filled", "vol", "driver"):
         if out[k].shape != (P,):
             raise InputError(path, f"{k} must have shape [{P}], got {out[k].shape}")
     for k in ("x", "vol"):
@@ -165,7 +177,8 @@ def _prepare(inputs: dict, cfg: dict, log: logging.Logger):
     note = cfl_note(materials, stepper, solver.dx)
     if note:
         log.warning("%s", note)
-    return parts, params, solver, stepper, th
+    rest = RestPolicy.from_config(cfg["sim"].get("rest"), solver.dynamics)
+    return parts, params, solver, stepper, th, rest
 
 
 def _stats(res: RunResult, solver: MPMSolver, extra: dict) -> dict:
@@ -187,7 +200,7 @@ def _sim_config(cfg: dict, solver: MPMSolver, stepper: TimeStepper) -> dict:
 # ============================================================================ forward
 def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     """Stage forward_sim: key-frame snapshots for BGDO (see the module docstring)."""
-    parts, params, solver, stepper, th = _prepare(inputs, cfg, log)
+    parts, params, solver, stepper, th, rest = _prepare(inputs, cfg, log)
     n_frames = _forward_frames(cfg)
     keys = _key_frames(cfg, n_frames)
     log.info("forward run: %d frames at %g fps, key frames %s", n_frames, stepper.fps, keys)
@@ -197,7 +210,8 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
         if k in keys:
             snaps[k] = {**solver.get_state(), "time": t, "dt": dt_next}
 
-    res = run_frames(solver, n_frames, stepper, th, on_frame, log, keep_backup=True, stage="forward_sim")
+    res = run_frames(solver, n_frames, stepper, th, on_frame, log, keep_backup=True, stage="forward_sim",
+                     rest=rest)
     missing = [k for k in keys if k not in snaps]
     substitute = None
     if missing:
@@ -210,6 +224,7 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
         log.warning("forward run unstable: key frames %s replaced by the last stable frame %d", missing, k)
     stats = _stats(res, solver, {"key_frames_requested": keys, "key_frames_written": sorted(snaps),
                                  "forward_frames": n_frames})
+    tears = any(m.fractures for m in solver.materials)  # ep is stored for tearing materials only
     with atomic_path(outputs["keyframes"]) as tmp:
         with h5py.File(tmp, "w") as f:
             g = f.create_group("particles")
@@ -220,7 +235,7 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
             for k in sorted(snaps):
                 s = snaps[k]
                 h = kf.create_group(str(k))
-                for name in ("x", "v", "C", "F"):
+                for name in ("x", "v", "C", "F") + (("ep",) if tears else ()):
                     h.create_dataset(name, data=s[name].astype(np.float32))
                 h.attrs["frame"] = k
                 h.attrs["time"] = float(s["time"])
@@ -239,40 +254,59 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
 
 # ============================================================================ final
 def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
-    """Stage final_sim: per-frame positions and F of the visible gaussians (final.h5)."""
-    parts, params, solver, stepper, th = _prepare(inputs, cfg, log)
+    """Stage final_sim: per-frame positions and F of the carrier particles (final.h5).
+
+    inputs: ``particles``, ``params``, optional ``transform`` (transform.json: the motion box
+    the render camera is fitted to is then recorded in the capture's frame)."""
+    from .final_frames import FinalWriter, codec_options
+    from .physical import PhysicalFigures
+
+    parts, params, solver, stepper, th, rest = _prepare(inputs, cfg, log)
     n_frames = int(cfg["sim"]["n_frames"])
-    rows = np.flatnonzero(~parts["filled"][: parts["n_gaussians"]]).astype(np.int64)
+    rows = np.flatnonzero(parts["driver"]).astype(np.int64)
     if len(rows) == 0:
-        raise InputError(inputs["particles"], "no visible (non-filled) gaussians to write")
-    level = int(cfg["sim"].get("compression", 4))
-    comp = {"compression": "gzip", "compression_opts": level, "shuffle": True} if level > 0 else {}
-    Nv = len(rows)
+        raise InputError(inputs["particles"], "no particle carries a visible gaussian ('driver' is empty)")
+    codec = codec_options(cfg["sim"].get("compression", "none"), int(cfg["sim"].get("compression_level", 1)))
+    times = np.arange(n_frames, dtype=np.float64) * stepper.frame_dt
+    figures = PhysicalFigures(n_frames)
+    to_source = None
+    if inputs.get("transform"):
+        from .prepare import load_transform
+
+        to_source = load_transform(inputs["transform"]).to_source
     with atomic_path(outputs["frames"]) as tmp:
         with h5py.File(tmp, "w") as f:
-            dx_ = f.create_dataset("x", (n_frames, Nv, 3), np.float32, chunks=(1, Nv, 3), **comp)
-            dF = f.create_dataset("F", (n_frames, Nv, 3, 3), np.float32, chunks=(1, Nv, 3, 3), **comp)
-            f.create_dataset("gaussian_index", data=rows)
-            times = np.arange(n_frames, dtype=np.float64) * stepper.frame_dt
-            f.create_dataset("time", data=times)
+            writer = FinalWriter(f, rows, times, codec, to_source)
 
             def on_frame(k: int, t: float, dt_next: float) -> None:
                 xs, Fs = solver.gather_rows(rows)
-                dx_[k] = xs
-                dF[k] = Fs
+                writer.frame(k, xs, Fs)
+                figures.add(k, xs, Fs)
 
-            log.info("final run: %d frames at %g fps, %d visible gaussians", n_frames, stepper.fps, Nv)
-            res = run_frames(solver, n_frames, stepper, th, on_frame, log, stage="final_sim")
+            def on_hold(k: int, t: float) -> None:
+                writer.hold(k)
+                figures.repeat(k)
+
+            log.info("final run: %d frames at %g fps, %d particles stored (of %d; they carry the %s gaussians)",
+                     n_frames, stepper.fps, len(rows), solver.n_particles, "visible")
+            res = run_frames(solver, n_frames, stepper, th, on_frame, log, stage="final_sim", rest=rest,
+                             on_hold=on_hold)
             if not res.stable:
-                raise SimulationError(res.message)
-            stats = _stats(res, solver, {"n_frames": n_frames, "n_visible": Nv,
+                if cfg["sim"].get("on_unstable", "error") != "keep" or res.frames_done < 1:
+                    raise SimulationError(res.message)
+                # sim.on_unstable: keep -> the stable frames stay, the failure goes into the stats
+                writer.truncate(res.frames_done)
+                times = times[: res.frames_done]
+                log.warning("final_sim unstable after frame %d: keeping frames 0..%d (sim.on_unstable: keep)",
+                            res.last_stable_frame, res.last_stable_frame)
+            stats = _stats(res, solver, {"n_frames": n_frames, "n_stored": len(rows), "rows_stored": writer.rows,
+                                         "frames_written": res.frames_done,
                                          "write_seconds": round(res.callback_seconds, 3)})
-            f.attrs["stats"] = json_text(stats)
-            f.attrs["params"] = json_text(params)
-            f.attrs["sim_config"] = json_text(_sim_config(cfg, solver, stepper), default=str)
-    log.info("final_sim: %d frames, %d substeps in %.1f s (+%.1f s first substep, %.1f s writing) -> %s",
-             n_frames, stats["substeps_total"], res.step_seconds, res.first_substep_seconds, res.callback_seconds,
+            writer.finish({"stats": stats, "params": params, "sim_config": _sim_config(cfg, solver, stepper),
+                           "physical": figures.result(times)})
+    log.info("final_sim: %d frames%s (%d held at rest, %d rows stored), %d substeps in %.1f s (+%.1f s first substep, "
+             "%.1f s writing) -> %s", res.frames_done, "" if res.stable else " (UNSTABLE, kept)", res.held_frames,
+             writer.rows, stats["substeps_total"], res.step_seconds, res.first_substep_seconds, res.callback_seconds,
              outputs["frames"])
-    return {"substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
-            "particle_substeps_per_second": stats["particle_substeps_per_second"]}
-
+    return {"stable": res.stable, "substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
+            "held_frames": res.held_frames, "particle_substeps_per_second": stats["particle_substeps_per_second"]}

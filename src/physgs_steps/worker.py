@@ -54,7 +54,7 @@ import time
 from pathlib import Path
 
 PROTOCOL = 1
-DEFAULT_STAGES = ("forward_sim", "bgdo_update", "final_sim", "render")
+DEFAULT_STAGES = ("forward_sim", "bgdo_update", "final_sim", "render", "bench_stress")
 DEFAULT_IDLE_SECONDS = 60.0
 START_TIMEOUT_S = 60.0
 
@@ -71,6 +71,7 @@ ENTRIES = {
     "render": "physgs_steps.render.stage:run",
     "metrics": "physgs_steps.metrics.stage:run",
     "stage_report": "physgs_steps.stage_report:run",
+    "bench_stress": "physgs_steps.benchmark.stress:run",
 }
 
 

@@ -71,9 +71,11 @@ def main_scene():
     return "bear" if "bear" in SCENES else SCENES[0]
 
 
+# A scene folder is a scene name, or a benchmark run folder benchmark/<scale>/runs/<name>
+# (physgs_steps.benchmark.spec); a target adds /ablations/<name> (benchmark: /variants/<name>).
 wildcard_constraints:
-    scene=r"[A-Za-z0-9_\-]+",
-    target=r"[A-Za-z0-9_\-]+(/ablations/[A-Za-z0-9_\-]+)?",
+    scene=r"(benchmark/(smoke|cpu|full)/runs/)?[A-Za-z0-9_\-]+",
+    target=r"[A-Za-z0-9_\-]+(/ablations/[A-Za-z0-9_\-]+)?|benchmark/(smoke|cpu|full)/runs/[A-Za-z0-9_\-]+(/variants/[A-Za-z0-9_\-]+)?",
     cluster_id=r"[A-Za-z0-9_\-]+",
     fill_id=r"[A-Za-z0-9_\-]+",
     params_id=r"[A-Za-z0-9_\-]+",
@@ -108,11 +110,12 @@ def job_request(stage, w):
     its scene (physgs_steps.resources; config section `resources`)."""
     from physgs_steps import resources
 
+    target = getattr(w, "target", None) or getattr(w, "scene", None)
     if stage == "vlm_params":  # the plan of this params id (an ablation may change the backend)
         plan = plan_for(w, "params")
-    else:
-        plan = target_plan(getattr(w, "target", None) or w.scene)
-    n = resources.scene_gaussians(plan.cfgs["prepare"]["scene"])
+    else:  # None: a job over no scene (the benchmark's aggregations)
+        plan = target_plan(target) if target else None
+    n = resources.scene_gaussians(plan.cfgs["prepare"]["scene"]) if plan is not None else None
     backend = plan.cfgs["params"]["materials"]["backend"] if stage == "vlm_params" else None
     return resources.request(config["resources"], stage, n, backend)
 
@@ -138,6 +141,10 @@ def sim_inputs(w):
     return {"particles": plan.path("particles"), "params": plan.path("params", w.step)}
 
 
+def final_inputs(w):
+    return dict(sim_inputs(w), transform=plan_for(w, "sim").path("transform"))
+
+
 def bgdo_inputs(w):
     plan = plan_for(w, "sim")
     prev = P.previous_step(w.step)
@@ -146,7 +153,8 @@ def bgdo_inputs(w):
 
 def render_inputs(w):
     plan = target_plan(w.target)
-    ins = {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform")}
+    ins = {"frames": plan.path("final"), "scene": plan.path("scene"), "transform": plan.path("transform"),
+           "carrier": plan.path("carrier")}
     cam = plan.cfgs["render"]["scene"].get("camera") or {}
     if cam.get("mode") == "cameras_json":  # an INRIA training run's cameras.json
         ins["cameras"] = str(C.resolve_path(cam["cameras_json"]))
@@ -156,6 +164,43 @@ def render_inputs(w):
 def report_jobs(w):
     plan = target_plan(w.target)
     return [{"rule": r, "step": s, "benchmark": plan.benchmark_path(r, s)} for r, s in plan.jobs()]
+
+
+# ---- the benchmark (workflow/rules/benchmark.smk)
+
+from physgs_steps.benchmark import spec as BS
+
+BENCH_SCALE = config["benchmark"]["scale"]
+BENCH_SCALES = "|".join(BS.SCALES)
+BENCH_TABLES = ("comparison", "comparison_scenes", "ablations", "robustness", "fill", "bgdo_change", "stress_vs_E")
+
+
+def bench_spec(scale):
+    return BS.spec_for(config, scale)
+
+
+def bench_report_path(name, scale=BENCH_SCALE):
+    return f"{BS.report_dir(scale)}/{name}"
+
+
+def bench_stress_plan(w):
+    spec, name = BS.spec_for_key(config, w.scene)
+    if name != spec.stress["scene"]:
+        raise C.ConfigError("benchmark.stress.scene", f"stress runs are made for '{spec.stress['scene']}', not '{name}'")
+    return spec.plan(name)
+
+
+def bench_stress_cfg(w):
+    spec, _ = BS.spec_for_key(config, w.scene)
+    return spec.stress_cfg(w.stress_id, int(w.index))
+
+
+def bench_stage_cfg(w):
+    return bench_spec(w.scale).stage_cfg()
+
+
+def bench_report_cfg(w):
+    return bench_spec(w.scale).report_cfg()
 
 
 def stop_worker():

@@ -24,6 +24,7 @@ rule fill:
         labels=lambda w: plan_for(w, "fill").path("labels"),
     output:
         particles="results/{scene}/fill/{fill_id}/particles.h5",
+        carrier="results/{scene}/fill/{fill_id}/carrier.h5",
         report="results/{scene}/fill/{fill_id}/fill_report.json",
     params:
         cfg=stage_cfg("fill", "fill"),

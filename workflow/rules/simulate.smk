@@ -40,7 +40,7 @@ rule bgdo_update:
 
 rule final_sim:
     input:
-        unpack(sim_inputs),
+        unpack(final_inputs),
     output:
         frames="results/{scene}/sim/{sim_id}/{step}/final.h5",
     params:

@@ -98,8 +98,8 @@ Read literally in SI units (``scaling: si``), eta = min(1, 0.1 log(1 + E/Pa)) is
 E above e^10 - 1 = 22 kPa, so the deformation term vanishes for all solid materials and G =
 mean log(1 + ||tau||/Pa) > 0: log E only decreases, by ~5.6 per iteration at the bear's
 stresses of a few kPa (3e8 -> 3e5 -> 1.1e3 Pa, a collapse), and below 22 kPa the unscaled
-deformation term is too weak to lift a collapsed object (30 -> 44 -> 63 Pa); see
-benchmarks/bgdo_robustness.py --bgdo scaling=si. The paper's E values are in a simulator's
+deformation term is too weak to lift a collapsed object (30 -> 44 -> 63 Pa); see the
+benchmark's robustness table with ``--config bgdo='{scaling: si}'``. The paper's E values are in a simulator's
 normalised units. ``scaling: reference`` (default) keeps the formulas and makes their
 arguments dimensionless:
 
@@ -147,9 +147,9 @@ failure handling the over-soft case goes the wrong way: the bear at 30 Pa collap
 its last stable frame (still falling) shows delta = 0.04 and BGDO would lower E (30 -> 14 ->
 6.5 Pa).
 
-Robustness (``python benchmarks/bgdo_robustness.py --scenes bear bear_can duck_stone ficus
-basket_mat bread --device cuda --n-gaussians 20000 --frames 150 --forward-frames 150 --E0 3e10
-3e8 30 kb`` on an H200: the main job's scene size, n_grid 32, 150 frames). E0 -> E1 -> E2 in Pa;
+Robustness (measured with the former script benchmarks/bgdo_robustness.py on an H200 for every
+built-in scene at the main job's size, n_grid 32, 150 frames; the benchmark's section 4 now
+regenerates it: ``snakemake benchmark``, README "Regenerating the benchmark"). E0 -> E1 -> E2 in Pa;
 every final simulation is stable, and without BGDO every corrupted start is unstable. c: held
 at the solver ceiling E_cap; x: outside the band.
 
@@ -168,7 +168,7 @@ The 300k-gaussian bear at n_grid 64 (360,603 particles), which collapses at impa
 knowledge-base E: 5e4 -> 6.5e5 -> 2.9e5 and 30 -> 1.2e5 -> 1.1e5, final runs stable (the first
 implementation oscillated 5e4 -> 1.6e7 -> 1.6e4 and its final run collapsed).
 
-Limitations (measured: benchmarks/bgdo_robustness.py, benchmarks/bgdo_stress_vs_E.py)
+Limitations (measured: the benchmark's robustness table and stress-vs-E figure)
 -------------------------------------------------------------------------------------
 * BGDO does not discover E from nothing: its fixed point is where the key-frame stretch
   matches delta_target, so the target decides where it lands. With the per-material target an
@@ -199,7 +199,7 @@ Plausible band
 The band of a material is its ``E_range`` in the knowledge base: simulation-effective moduli
 (not handbook values) for a 0.5 m tabletop object at n_grid 32-64 and 30 fps. For jelly,
 [1e4, 5e5] Pa. It is right for this simulator because it contains gelatin's measured 1-100 kPa
-and matches what the bear does (benchmarks/bgdo_stress_vs_E.py, 60 runs): below ~1.2e4 Pa it
+and matches what the bear does (the benchmark's stress-vs-E figure, 60 runs): below ~1.2e4 Pa it
 collapses at impact (J < sim.stability.j_min), from ~1.7e4 Pa it lands and wobbles, and
 towards 5e5 Pa the key-frame stretch falls below 1 % (it barely deforms) while the explicit
 step needs ~54 substeps per frame at n_grid 32. Stiff materials' bands (stone, metal, wood
@@ -210,7 +210,7 @@ from __future__ import annotations
 
 from .torch_step import (  # noqa: F401
     ELASTICITY, PLASTICITY, SIG_FLOOR, J_FLOOR, SVD_GAP, canonical_elasticity, canonical_plasticity,
-    svd3, lame, kirchhoff, PlasticParams, return_map, InstanceTable, instance_table,
+    svd3, lame, kirchhoff, PlasticParams, PLASTIC_KEYS, return_map, fracture_step, degrade, InstanceTable, instance_table,
     log_E_from_instances, GridSpec, particle_stress, plastic_projection, mpm_step, pseudo_step,
 )
 from .update import (  # noqa: F401

@@ -84,13 +84,14 @@ def read_keyframes_meta(path: str) -> dict:
 
 
 def iter_keyframes(path: str, frames: list):
-    """Yield key-frame dicts {"frame", "time", "dt", "x", "v", "C", "F"} one at a time."""
+    """Yield key-frame dicts {"frame", "time", "dt", "x", "v", "C", "F"} (and "ep" when stored:
+    tearing materials) one at a time."""
     import h5py
 
     for name, frame, time_, dt, _ in frames:
         with h5py.File(path, "r") as f:
             g = f["keyframes"][name]
-            yield {"frame": frame, "time": time_, "dt": dt, **{k: g[k][...] for k in ("x", "v", "C", "F")}}
+            yield {"frame": frame, "time": time_, "dt": dt, **{k: g[k][...] for k in ("x", "v", "C", "F", "ep") if k in g}}
 
 
 def resolve_device(cfg: dict) -> str:

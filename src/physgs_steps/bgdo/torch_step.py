@@ -139,13 +139,43 @@ class PlasticParams:
     """Per-particle plasticity parameters (each [B]); unused ones may hold anything finite."""
 
     yield_stress: torch.Tensor    # [B] Pa (von Mises)
-    friction_angle: torch.Tensor  # [B] degrees (Drucker-Prager)
-    cohesion: torch.Tensor        # [B] dimensionless log-strain offset (Drucker-Prager)
+    friction_angle: torch.Tensor  # [B] degrees (Drucker-Prager, Mohr-Coulomb)
+    cohesion: torch.Tensor        # [B] dimensionless log-strain offset (Drucker-Prager, Mohr-Coulomb)
     j_min: torch.Tensor           # [B] (J-clamp)
     j_max: torch.Tensor           # [B] (J-clamp)
+    fracture_strain: torch.Tensor     # [B] tension cut-off of tearing materials (inf: no tearing)
+    fracture_softening: torch.Tensor  # [B] inelastic strain over which the damage grows to 1
 
     def subset(self, idx: torch.Tensor) -> "PlasticParams":
-        return PlasticParams(*(getattr(self, k)[idx] for k in ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max")))
+        return PlasticParams(*(getattr(self, k)[idx] for k in PLASTIC_KEYS))
+
+
+PLASTIC_KEYS = ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max", "fracture_strain", "fracture_softening")
+
+
+def fracture_step(F_ret: torch.Tensor, ep: torch.Tensor, pp: PlasticParams) -> tuple:
+    """Tearing after the return map (mpm/materials.py, class Fracture): principal elastic
+    Hencky strains above ``fracture_strain`` are cut off and added to ``ep``; a fully cracked
+    particle (ep >= fracture_softening) forgets its tensile stretches.
+    F_ret  # [B, 3, 3]; ep  # [B]  ->  F  # [B, 3, 3], ep  # [B], d  # [B]"""
+    U, sig, V = svd3(F_ret)
+    e = torch.log(torch.clamp(sig, min=SIG_FLOOR))
+    cap = pp.fracture_strain[:, None]
+    ep = ep + torch.clamp(e - cap, min=0.0).sum(-1)
+    e = torch.minimum(e, cap)
+    d = torch.clamp(ep / pp.fracture_softening, max=1.0)
+    e = torch.where((d >= 1.0)[:, None], torch.clamp(e, max=0.0), e)
+    return U @ torch.diag_embed(torch.exp(e)) @ V.transpose(-1, -2), ep, d
+
+
+def degrade(tau: torch.Tensor, F: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Stress of damaged particles: the tensile principal stresses fade by (1 - d), compression
+    stays (principal frame U of F, where the isotropic models' tau is diagonal).
+    tau, F  # [B, 3, 3], d  # [B] -> [B, 3, 3]"""
+    U, _, _ = svd3(F)
+    t = torch.diagonal(U.transpose(-1, -2) @ tau @ U, dim1=-2, dim2=-1)
+    t = torch.clamp(t, max=0.0) + (1.0 - d)[:, None] * torch.clamp(t, min=0.0)
+    return U @ torch.diag_embed(t) @ U.transpose(-1, -2)
 
 
 def _safe_unit(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -188,6 +218,20 @@ def return_map(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, pp: Plastic
         dg = n - pp.yield_stress / (2.0 * mu)
         eps = torch.where((dg > 0)[:, None], eps - dg[:, None] * unit, eps)
         return U @ torch.diag_embed(torch.exp(eps)) @ V.transpose(-1, -2)
+    if model == "mohr_coulomb":
+        c = pp.cohesion[:, None]
+        e = eps - c
+        sphi = torch.sin(torch.deg2rad(pp.friction_angle))
+        tr = e.sum(-1)
+        e_hat = e - e.mean(-1, keepdim=True)
+        hi, lo = e_hat.max(-1).values, e_hat.min(-1).values
+        p = (2.0 * mu / 3.0 + lam) * tr  # mean Kirchhoff stress (< 0: compression)
+        D = 2.0 * mu * ((hi - lo) + sphi * (hi + lo))
+        scale = -2.0 * p * sphi / torch.where(D > 0, D, torch.ones_like(D))
+        shrink = (D > 0) & (scale < 1.0)
+        e_proj = torch.where(shrink[:, None], (tr / 3.0)[:, None] + scale[:, None] * e_hat, e)
+        e = torch.where((tr >= 0)[:, None], torch.zeros_like(e), e_proj)
+        return U @ torch.diag_embed(torch.exp(e + c)) @ V.transpose(-1, -2)
     # drucker_prager
     c = pp.cohesion[:, None]
     e = eps - c
@@ -241,11 +285,17 @@ class InstanceTable:
         p = self.plastic
         return InstanceTable(self.label.to(device), self.vol.to(device), self.nu.to(device), self.density.to(device),
                              list(self.elasticity), list(self.plasticity),
-                             PlasticParams(*(getattr(p, k).to(device) for k in ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max"))),
+                             PlasticParams(*(getattr(p, k).to(device) for k in PLASTIC_KEYS)),
                              list(self.names), list(self.rigid), list(self.fixed))
 
+    @property
+    def fractures(self) -> list:
+        """Per instance: whether it tears (a finite fracture_strain)."""
+        return [bool(math.isfinite(float(v))) for v in self.plastic.fracture_strain]
 
-_PLASTIC_DEFAULTS = {"yield_stress": math.inf, "friction_angle": 30.0, "cohesion": 0.0, "j_min": 0.05, "j_max": 1.2}
+
+_PLASTIC_DEFAULTS = {"yield_stress": math.inf, "friction_angle": 30.0, "cohesion": 0.0, "j_min": 0.05, "j_max": 1.2,
+                     "fracture_strain": math.inf, "fracture_softening": 0.2}
 
 
 def instance_table(instances: list[dict], label, vol, dtype=torch.float32, device="cpu", source: str = "params.json",
@@ -304,7 +354,7 @@ def instance_table(instances: list[dict], label, vol, dtype=torch.float32, devic
     return InstanceTable(
         label=torch.as_tensor(label_np.astype(np.int64), device=device),
         vol=t(vol), nu=t(nu), density=t(rho), elasticity=el, plasticity=pl,
-        plastic=PlasticParams(*(t(pvals[k]) for k in ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max"))),
+        plastic=PlasticParams(*(t(pvals[k]) for k in PLASTIC_KEYS)),
         names=names, rigid=rigid, fixed=fixed,
     )
 
@@ -335,10 +385,13 @@ class GridSpec:
 _OFFSETS = torch.tensor(list(itertools.product(range(3), repeat=3)), dtype=torch.int64)  # [27, 3]
 
 
-def particle_stress(F: torch.Tensor, log_E_p: torch.Tensor, table: InstanceTable) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Kirchhoff stress of every particle from its instance's elasticity model.
+def particle_stress(F: torch.Tensor, log_E_p: torch.Tensor, table: InstanceTable,
+                    ep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Kirchhoff stress of every particle from its instance's elasticity model, degraded by
+    the damage of tearing instances.
 
-    F  # [P, 3, 3]; log_E_p  # [P] log Young's modulus of each particle's instance
+    F  # [P, 3, 3]; log_E_p  # [P] log Young's modulus of each particle's instance;
+    ep  # [P] accumulated inelastic strain (None: intact)
     returns tau  # [P, 3, 3] Pa, mu  # [P], lam  # [P]
     """
     E_p = torch.exp(log_E_p).to(F.dtype)
@@ -349,7 +402,20 @@ def particle_stress(F: torch.Tensor, log_E_p: torch.Tensor, table: InstanceTable
         idx = torch.nonzero(torch.isin(table.label, torch.as_tensor(ks, device=F.device)), as_tuple=True)[0]
         if idx.numel():
             tau = tau.index_copy(0, idx, kirchhoff(F[idx], mu[idx], lam[idx], model))
+    idx = _fracturing(table, F.device)
+    if ep is not None and idx.numel():
+        pp = table.plastic.subset(table.label[idx])
+        d = torch.clamp(ep[idx] / pp.fracture_softening, max=1.0)
+        tau = tau.index_copy(0, idx, degrade(tau[idx], F[idx], d))
     return tau, mu, lam
+
+
+def _fracturing(table: InstanceTable, device) -> torch.Tensor:
+    """Indices of the particles of tearing instances.  # -> [P'] int64"""
+    ks = [k for k, f in enumerate(table.fractures) if f]
+    if not ks:
+        return torch.zeros(0, dtype=torch.int64, device=device)
+    return torch.nonzero(torch.isin(table.label, torch.as_tensor(ks, device=device)), as_tuple=True)[0]
 
 
 def plastic_projection(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, table: InstanceTable) -> torch.Tensor:
@@ -367,16 +433,21 @@ def plastic_projection(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, tab
 
 
 def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=None):
-    """One MLS-MPM/APIC substep after the stress (CONTRACTS.md steps 2-4, without plasticity).
+    """One MLS-MPM/APIC substep after the stress (CONTRACTS.md steps 1-4, without plasticity).
 
-    All in SI: x  # [P, 3] m, v  # [P, 3] m/s, C  # [P, 3, 3] 1/s, F  # [P, 3, 3],
-    tau  # [P, 3, 3] Pa, p_mass  # [P] kg, p_vol  # [P] m^3.  rigid  # [P] bool or None: these
-    particles read the grid velocity before the wall conditions and are not projected onto
-    the walls (rigid bodies meet boundaries as bodies).
+    All in SI: x  # [P, 3] m, v  # [P, 3] m/s at the state's time, C  # [P, 3, 3] 1/s,
+    F  # [P, 3, 3], tau  # [P, 3, 3] Pa, p_mass  # [P] kg, p_vol  # [P] m^3.
+    Leapfrog like the Taichi solver: the velocities are staggered by -dt/2 g before P2G, the
+    grid kicks them by dt g, x drifts with the half-step velocity, and the returned v is the
+    half-step velocity plus dt/2 g (the velocity at the new state's time).
+    rigid  # [P] bool or None: these particles read the grid velocity before the wall
+    conditions and are not projected onto the walls (rigid bodies meet boundaries as bodies).
     returns x, v, C, F_trial (each like the input)
     """
     P = x.shape[0]
     dev, dtp = x.device, x.dtype
+    g = torch.as_tensor(grid.gravity, dtype=dtp, device=dev)
+    v = v - 0.5 * dt * g
     G = int(grid.n_grid)
     dx = grid.domain_size / G
     inv_dx = 1.0 / dx
@@ -398,7 +469,6 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     grid_m = x.new_zeros((M,)).index_add(0, inv, (weight * p_mass[:, None]).reshape(-1))
     has_mass = grid_m > 0
     gv = grid_mv / torch.where(has_mass, grid_m, torch.ones_like(grid_m))[:, None]
-    g = torch.as_tensor(grid.gravity, dtype=dtp, device=dev)
     gv = torch.where(has_mass[:, None], gv + dt * g, torch.zeros_like(gv))
     # a wall acts on the nodes of (deformable) particles that touch it (colliders.py)
     phi_p = torch.stack([sgn * (x[:, a] - pos) for a, sgn, pos in _wall_planes(G, dx, grid)], -1).min(-1).values
@@ -418,7 +488,7 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     new_x, new_v = _project_walls(new_x, new_v, rigid, dx, G, grid)
     I = _eye(P, F)
     F_trial = (I + dt * new_C) @ F
-    return new_x, new_v, new_C, F_trial
+    return new_x, new_v + 0.5 * dt * g, new_C, F_trial
 
 
 def _wall_planes(G: int, dx: float, grid: GridSpec):
@@ -557,9 +627,10 @@ def rigid_projection(x_old, x, v, C, F, p_mass, dt: float, dx: float, label, bod
 def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTable, grid: GridSpec) -> dict:
     """One differentiable MPM substep from a stored state, log E per instance as the leaf.
 
-    state: domain units, each a tensor: x  # [P, 3], v  # [P, 3], C  # [P, 3, 3], F  # [P, 3, 3]
+    state: domain units, each a tensor: x  # [P, 3], v  # [P, 3], C  # [P, 3, 3], F  # [P, 3, 3],
+    optional ep  # [P] accumulated inelastic strain of tearing instances (default 0)
     log_E  # [K] natural log of Young's modulus (Pa) per instance
-    returns {"x", "v", "C", "F"} after the substep (domain units) and "tau"  # [P, 3, 3] Pa, the
+    returns {"x", "v", "C", "F", "ep"} after the substep (domain units) and "tau"  # [P, 3, 3] Pa, the
     Kirchhoff stress of the input state; "mu", "lam"  # [P]; "log_E_p"  # [P] = log_E[label]
     (differentiate with respect to it for per-particle derivatives).  Rigid instances carry no
     stress and move with their body's rigid motion (:func:`rigid_projection`); rows of fixed
@@ -567,8 +638,10 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
     """
     L = float(grid.domain_size)
     F = state["F"]
+    ep = state.get("ep")
+    ep = F.new_zeros(F.shape[0]) if ep is None else ep.to(F.dtype)
     log_E_p = log_E[table.label]
-    tau, mu, lam = particle_stress(F, log_E_p, table)
+    tau, mu, lam = particle_stress(F, log_E_p, table, ep)
     p_vol = table.vol * L ** 3
     p_mass = table.density[table.label] * p_vol
     bodies = [k for k in range(table.n_instances) if table.is_rigid(k)]
@@ -576,6 +649,16 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
     x0 = state["x"] * L
     x, v, C, F_trial = mpm_step(x0, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid, rigid)
     F_new = plastic_projection(F_trial, mu, lam, table)
+    idx = _fracturing(table, F.device)
+    if idx.numel():
+        F_f, ep_f, _ = fracture_step(F_new[idx], ep[idx], table.plastic.subset(table.label[idx]))
+        F_new = F_new.index_copy(0, idx, F_f)
+        ep = ep.index_copy(0, idx, ep_f)
     if bodies:
-        x, v, C, F_new = rigid_projection(x0, x, v, C, F_new, p_mass, dt, L / grid.n_grid, table.label, bodies, F)
-    return {"x": x / L, "v": v / L, "C": C, "F": F_new, "tau": tau, "mu": mu, "lam": lam, "log_E_p": log_E_p}
+        # the bodies move with the half-step velocity (as rigid.py's advance); a uniform shift
+        # changes no body's angular momentum about its centre of mass
+        half = 0.5 * dt * torch.as_tensor(grid.gravity, dtype=v.dtype, device=v.device)
+        x, v, C, F_new = rigid_projection(x0, x, v - half, C, F_new, p_mass, dt, L / grid.n_grid, table.label, bodies, F)
+        v = v + half
+    return {"x": x / L, "v": v / L, "C": C, "F": F_new, "ep": ep, "tau": tau, "mu": mu, "lam": lam,
+            "log_E_p": log_E_p}

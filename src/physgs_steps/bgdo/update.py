@@ -181,7 +181,8 @@ def frame_signals(keyframe: dict, log_E: torch.Tensor, table: InstanceTable, gri
     it takes no part in the step, its stress signal is +inf (so a frame with exploded particles
     asks for the largest allowed decrease of E), and it is left out of delta.
     """
-    st = {k: torch.as_tensor(np.asarray(keyframe[k]), dtype=dtype, device=device) for k in ("x", "v", "C", "F")}
+    st = {k: torch.as_tensor(np.asarray(keyframe[k]), dtype=dtype, device=device) for k in ("x", "v", "C", "F", "ep")
+          if k in keyframe}
     ok = _finite_rows(st["x"], st["v"], st["C"], st["F"])
     ok &= ((st["x"] >= 0) & (st["x"] <= 1)).all(dim=1) if ok.numel() else ok
     idx = torch.nonzero(ok, as_tuple=True)[0]

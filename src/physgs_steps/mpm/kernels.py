@@ -12,11 +12,12 @@ Arrays (SI units inside the solver: metres, m/s, s, Pa):
     x, v [P] vec3         position, velocity
     C, F, tau [P] mat3    APIC affine matrix, elastic deformation gradient, Kirchhoff stress of F
     p_vol, p_mass [P]     particle volume (m^3) and mass (kg)
+    ep [P]                accumulated inelastic strain of tearing materials (materials.Fracture)
     mat [P] int           material (instance) index into mparams / mcombo
     act_bits [P] int      particle-action membership bits (see dynamics.py)
     grid_v [T,G,G,G] vec3 grid momentum, then velocity (in chunk 0)
     grid_m [T,G,G,G]      grid mass
-    mparams [K, 8]        mu, lam, density, yield_stress, dp_alpha, cohesion, j_min, j_max
+    mparams [K, N_PARAMS] materials.PARAM_COLUMNS (mu, lam, density, yield_stress, ...)
     mcombo [K] int        index of the material's (elasticity, plasticity) pair in Spec.combos
     dyn [R, 12]           dynamics table (dynamics.py)
     err [4] int           err[0] counts particles whose stencil left the grid (clamped)
@@ -67,7 +68,7 @@ def _qrow(mparams: ti.template(), m):
 class Spec(NamedTuple):
     """What a kernel is specialised to (hashable; the build cache key)."""
 
-    combos: tuple        # ((elasticity name, plasticity name), ...)
+    combos: tuple        # ((elasticity name, plasticity name, fracture on/off), ...)
     boundary: str        # slip | sticky (domain walls)
     damping: bool        # whether grid damping is applied
     counts: tuple        # (surface, cuboid, acceleration, translation, rotation) dynamics rows
@@ -281,10 +282,10 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
 @functools.lru_cache(maxsize=None)
 def build(spec: Spec) -> SimpleNamespace:
     """The kernels for ``spec`` (built once per process and spec)."""
-    pairs = [(M.ELASTICITY[e], M.PLASTICITY[p]) for e, p in spec.combos]
-    updates = [_make_update(el, pl) for el, pl in pairs]
-    n_combo = len(pairs)
-    rigid_cid = spec.combos.index(M.RIGID_MODELS) if M.RIGID_MODELS in spec.combos else -1
+    updates = [_make_update(M.ELASTICITY[e], M.PLASTICITY[p], f) for e, p, f in spec.combos]
+    n_combo = len(updates)
+    any_fracture = any(f for _, _, f in spec.combos)
+    rigid_cid = spec.combos.index(M.RIGID_KEY) if M.RIGID_KEY in spec.combos else -1
     n_surf, n_cub, n_acc, n_tra, n_rot = spec.counts
     r_acc = n_surf + n_cub
     r_tra = r_acc + n_acc
@@ -404,7 +405,7 @@ def build(spec: Spec) -> SimpleNamespace:
                 grid_c[c, node[0], node[1], node[2]] = 1.0
 
     @ti.kernel
-    def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
+    def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
                 grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3,
                 lvl_rows: S2, err: I1, dt: ti.f32, t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32,
                 gz: ti.f32, damp: ti.f32):
@@ -516,11 +517,16 @@ def build(spec: Spec) -> SimpleNamespace:
                 cid = mcombo[m]
             F_new = F_trial
             tau_new = ti.Matrix.zero(ti.f32, 3, 3)
+            ep_p = 0.0
+            if ti.static(any_fracture):
+                ep_p = ep[p]
             for ci in ti.static(range(n_combo)):
                 if cid == ci:
-                    F_new, tau_new = updates[ci](F_trial, q)
+                    F_new, tau_new, ep_p = updates[ci](F_trial, q, ep_p)
             F[p] = F_new
             tau[p] = tau_new
+            if ti.static(any_fracture):
+                ep[p] = ep_p
 
     return SimpleNamespace(substep=substep, spec=spec, colliders=col)
 
@@ -528,15 +534,14 @@ def build(spec: Spec) -> SimpleNamespace:
 @functools.lru_cache(maxsize=None)
 def build_constitutive(combos: tuple) -> SimpleNamespace:
     """Kernels of the constitutive models alone (no grid): ``stress(F, mat, mparams, mcombo,
-    tau)`` and ``update(F_trial, mat, mparams, mcombo, F_out, tau_out)`` (return map, then
-    the stress of the returned F, exactly as in G2P)."""
-    pairs = [(M.ELASTICITY[e], M.PLASTICITY[p]) for e, p in combos]
-    updates = [_make_update(el, pl) for el, pl in pairs]
-    stresses = [_make_stress(el) for el, _ in pairs]
-    n_combo = len(pairs)
+    ep, tau)`` and ``update(F_trial, mat, mparams, mcombo, ep, F_out, tau_out)`` (return map,
+    then the stress of the returned F, exactly as in G2P; ``ep`` is updated in place)."""
+    updates = [_make_update(M.ELASTICITY[e], M.PLASTICITY[p], f) for e, p, f in combos]
+    stresses = [_make_stress(M.ELASTICITY[e], f) for e, _, f in combos]
+    n_combo = len(updates)
 
     @ti.kernel
-    def stress(F: M1, mat: I1, mparams: S2, mcombo: I1, tau: M1):
+    def stress(F: M1, mat: I1, mparams: S2, mcombo: I1, ep: S1, tau: M1):
         for p in F:
             m = mat[p]
             q = _qrow(mparams, m)
@@ -546,11 +551,11 @@ def build_constitutive(combos: tuple) -> SimpleNamespace:
             tau_new = ti.Matrix.zero(ti.f32, 3, 3)
             for ci in ti.static(range(n_combo)):
                 if cid == ci:
-                    tau_new = stresses[ci](F[p], q)
+                    tau_new = stresses[ci](F[p], q, ep[p])
             tau[p] = tau_new
 
     @ti.kernel
-    def update(F_trial: M1, mat: I1, mparams: S2, mcombo: I1, F_out: M1, tau_out: M1):
+    def update(F_trial: M1, mat: I1, mparams: S2, mcombo: I1, ep: S1, F_out: M1, tau_out: M1):
         for p in F_trial:
             m = mat[p]
             q = _qrow(mparams, m)
@@ -559,22 +564,25 @@ def build_constitutive(combos: tuple) -> SimpleNamespace:
                 cid = mcombo[m]
             F_new = F_trial[p]
             tau_new = ti.Matrix.zero(ti.f32, 3, 3)
+            ep_p = ep[p]
             for ci in ti.static(range(n_combo)):
                 if cid == ci:
-                    F_new, tau_new = updates[ci](F_trial[p], q)
+                    F_new, tau_new, ep_p = updates[ci](F_trial[p], q, ep_p)
             F_out[p] = F_new
             tau_out[p] = tau_new
+            ep[p] = ep_p
 
     return SimpleNamespace(stress=stress, update=update)
 
 
-def _make_update(el: type, pl: type):
-    """ti.func (F_trial, q) -> (F, tau): return map then the stress of the returned F."""
-    svd_first = M.svd_before_return_map(el, pl)
-    svd_ok = M.svd_available(el, pl)
+def _make_update(el: type, pl: type, fracture: bool = False):
+    """ti.func (F_trial, q, ep) -> (F, tau, ep): return map (then tearing, when the material
+    fractures) and the stress of the returned F."""
+    svd_first = M.svd_before_return_map(el, pl) or fracture
+    svd_ok = M.svd_available(el, pl) or fracture
 
     @ti.func
-    def update(F_trial, q):
+    def update(F_trial, q, ep):
         mu = q[0]
         lam = q[1]
         U = ti.Matrix.identity(ti.f32, 3)
@@ -584,6 +592,10 @@ def _make_update(el: type, pl: type):
             U, S, V = ti.svd(F_trial)
             sig = ti.Vector([S[0, 0], S[1, 1], S[2, 2]], dt=ti.f32)
         F_new, U2, sig2, V2 = pl.return_map(F_trial, U, sig, V, mu, lam, q)
+        d = 0.0
+        ep_out = ep
+        if ti.static(fracture):
+            F_new, sig2, ep_out, d = M.Fracture.update(U2, sig2, V2, ep, q)
         J = 0.0
         if ti.static(svd_ok):
             J = sig2[0] * sig2[1] * sig2[2]
@@ -594,16 +606,18 @@ def _make_update(el: type, pl: type):
             tau = el.kirchhoff_svd(F_new, U2, sig2, V2, J, mu, lam)
         else:
             tau = el.kirchhoff(F_new, J, mu, lam)
-        return F_new, tau
+        if ti.static(fracture):
+            tau = M.Fracture.degrade(tau, U2, d)
+        return F_new, tau, ep_out
 
     return update
 
 
-def _make_stress(el: type):
-    """ti.func (F, q) -> tau of the given F (no return map)."""
+def _make_stress(el: type, fracture: bool = False):
+    """ti.func (F, q, ep) -> tau of the given F (no return map), degraded by the damage of ep."""
 
     @ti.func
-    def stress(F, q):
+    def stress(F, q, ep):
         mu = q[0]
         lam = q[1]
         U = ti.Matrix.identity(ti.f32, 3)
@@ -611,17 +625,76 @@ def _make_stress(el: type):
         sig = ti.Vector([1.0, 1.0, 1.0], dt=ti.f32)
         J = 0.0
         tau = ti.Matrix.zero(ti.f32, 3, 3)
-        if ti.static(el.needs_svd):
+        if ti.static(el.needs_svd or fracture):
             U, S, V = ti.svd(F)
             sig = ti.Vector([S[0, 0], S[1, 1], S[2, 2]], dt=ti.f32)
             J = sig[0] * sig[1] * sig[2]
-            tau = el.kirchhoff_svd(F, U, sig, V, J, mu, lam)
+            if ti.static(M.takes_svd(el)):
+                tau = el.kirchhoff_svd(F, U, sig, V, J, mu, lam)
+            else:
+                tau = el.kirchhoff(F, J, mu, lam)
         else:
             J = F.determinant()
             tau = el.kirchhoff(F, J, mu, lam)
+        if ti.static(fracture):
+            tau = M.Fracture.degrade(tau, U, M.Fracture.damage(ep, q))
         return tau
 
     return stress
+
+
+@ti.func
+def _stencil_clamped(xp, inv_dx, G):
+    """Quadratic B-spline stencil (base node, fx, weights) with the base clamped onto the grid."""
+    base = ti.cast(ti.floor(xp * inv_dx - 0.5), ti.i32)
+    base = ti.min(ti.max(base, 0), G - 3)
+    fx = xp * inv_dx - ti.cast(base, ti.f32)
+    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+    return base, fx, w
+
+
+@ti.kernel
+def affine_transfer(x: V1, v: V1, C: M1, p_mass: S1, grid_v: V4, grid_m: S4, dx: ti.f32):
+    """One APIC round trip of the particle velocity field at fixed positions: P2G of the
+    momenta ``m (v + C dpos)`` into chunk 0 of the grid, then ``C = 4 / dx^2 sum w v_i dpos^T``.
+    ``v`` is left unchanged.  Repeated, C converges to the velocity gradient the APIC transfer
+    reproduces (exact for affine velocity fields: Jiang et al. 2015)."""
+    inv_dx = 1.0 / dx
+    G = grid_m.shape[1]
+    for I in ti.grouped(grid_m):
+        grid_v[I] = ti.Vector.zero(ti.f32, 3)
+        grid_m[I] = 0.0
+    for p in x:
+        base, fx, w = _stencil_clamped(x[p], inv_dx, G)
+        mass = p_mass[p]
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, ti.f32) - fx) * dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            node = base + offset
+            grid_v[0, node[0], node[1], node[2]] += weight * mass * (v[p] + C[p] @ dpos)
+            grid_m[0, node[0], node[1], node[2]] += weight * mass
+    for i, j, k in ti.ndrange(G, G, G):
+        m = grid_m[0, i, j, k]
+        if m > 0.0:
+            grid_v[0, i, j, k] = grid_v[0, i, j, k] / m
+    for p in x:
+        base, fx, w = _stencil_clamped(x[p], inv_dx, G)
+        new_C = ti.Matrix.zero(ti.f32, 3, 3)
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, ti.f32) - fx) * dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            node = base + offset
+            new_C += (4.0 * inv_dx * inv_dx * weight) * grid_v[0, node[0], node[1], node[2]].outer_product(dpos)
+        C[p] = new_C
+
+
+@ti.kernel
+def add_velocity(v: V1, dvx: ti.f32, dvy: ti.f32, dvz: ti.f32):
+    """v[p] += (dvx, dvy, dvz) for every particle (the leapfrog re-staggering)."""
+    for p in v:
+        v[p] = v[p] + ti.Vector([dvx, dvy, dvz], dt=ti.f32)
 
 
 @ti.func

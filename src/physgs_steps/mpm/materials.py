@@ -36,11 +36,14 @@ LOG_FLOOR = 1e-6  # logs of singular values and of J use log(max(s, LOG_FLOOR))
 VOLUME_GAMMA = 2.0  # Mie-Grueneisen exponent of the volume model
 
 # Columns of the per-material parameter table handed to the kernels.
-PARAM_COLUMNS = ("mu", "lam", "density", "yield_stress", "dp_alpha", "cohesion", "j_min", "j_max")
+PARAM_COLUMNS = ("mu", "lam", "density", "yield_stress", "dp_alpha", "cohesion", "j_min", "j_max", "sin_phi",
+                 "fracture_strain", "fracture_softening")
 N_PARAMS = len(PARAM_COLUMNS)
 COL = {name: i for i, name in enumerate(PARAM_COLUMNS)}
-_Q_YIELD_STRESS, _Q_DP_ALPHA, _Q_COHESION, _Q_J_MIN, _Q_J_MAX = (
-    COL["yield_stress"], COL["dp_alpha"], COL["cohesion"], COL["j_min"], COL["j_max"])
+_Q_YIELD_STRESS, _Q_DP_ALPHA, _Q_COHESION, _Q_J_MIN, _Q_J_MAX, _Q_SIN_PHI = (
+    COL["yield_stress"], COL["dp_alpha"], COL["cohesion"], COL["j_min"], COL["j_max"], COL["sin_phi"])
+_Q_FRACTURE_STRAIN, _Q_FRACTURE_SOFTENING = COL["fracture_strain"], COL["fracture_softening"]
+DEFAULT_FRACTURE_SOFTENING = 0.2
 
 PRESET_NAMES = ("jelly", "rubber", "elastomer", "metal", "sand", "snow", "plasticine", "water", "foam", "stone")
 
@@ -286,6 +289,38 @@ class DruckerPrager(Plasticity):
         return U @ _diag(s) @ V.transpose(), U, s, V
 
 
+class MohrCoulomb(Plasticity):
+    """Mohr-Coulomb sand plasticity on Hencky strains, returned like Klar et al.'s
+    Drucker-Prager model (tension to the tip, shear radially towards the hydrostatic axis at
+    constant volume) but onto the Mohr-Coulomb surface
+    ``(t1 - t3) + (t1 + t3) sin(phi) <= 0`` of the principal Kirchhoff stresses t1 >= t2 >= t3."""
+
+    name = "mohr_coulomb"
+    svd_mode = "needs"
+
+    @staticmethod
+    @ti.func
+    def return_map(F, U, sig, V, mu, lam, q):
+        coh = q[_Q_COHESION]
+        e = _log_sig(sig) - coh
+        tr = e.sum()
+        if tr >= 0.0:
+            e = ti.Vector.zero(ti.f32, 3)
+        else:
+            e_hat = e - tr / 3.0
+            hi = e_hat.max()
+            lo = e_hat.min()
+            sphi = q[_Q_SIN_PHI]
+            p = (2.0 * mu / 3.0 + lam) * tr  # mean Kirchhoff stress (< 0: compression)
+            D = 2.0 * mu * ((hi - lo) + sphi * (hi + lo))
+            if D > 0.0:
+                scale = -2.0 * p * sphi / D  # the deviator's scale that lands on the surface
+                if scale < 1.0:
+                    e = tr / 3.0 + scale * e_hat
+        s = ti.exp(e + coh)
+        return U @ _diag(s) @ V.transpose(), U, s, V
+
+
 class FluidPlasticity(Plasticity):
     """``F = cbrt(J) I``: all shear is forgotten, only the volume change is kept."""
 
@@ -299,9 +334,61 @@ class FluidPlasticity(Plasticity):
         return c * _eye(), _eye(), ti.Vector([c, c, c], dt=ti.f32), _eye()
 
 
+# ============================================================================ fracture
+class Fracture:
+    """Tearing: a per-particle damage state in the constitutive path (mpm88's ``Jp`` slot).
+
+    A Rankine tension cut-off with softening (in the spirit of Wolper et al. 2019, "CD-MPM:
+    continuum damage material point methods for dynamic fracture animation"): no principal
+    elastic Hencky strain of a tearing material exceeds ``fracture_strain``; what the cut-off
+    removes is crack opening and accumulates in the particle's ``ep`` [P].  The damage
+    ``d = min(ep / fracture_softening, 1)`` fades the tensile principal stresses,
+    ``tau_d = U diag(min(t, 0) + (1 - d) max(t, 0)) U^T`` (t the principal Kirchhoff stresses,
+    U their directions), so a cracked particle no longer holds its neighbours together (the
+    grid lets the pieces part) but still resists compression.  A fully cracked particle
+    (d = 1) also forgets its tensile stretches (``e_i = min(e_i, 0)``).  Compression and
+    shear do not crack a material (its plasticity model handles them).  Softening localises
+    in a band one or two cells wide, so the energy a crack takes scales with dx (no crack-band
+    regularisation).
+    """
+
+    @staticmethod
+    @ti.func
+    def update(U, sig, V, ep, q):
+        """(F, sig, ep, d) after the tension cut-off and the damage update of a returned elastic
+        state ``U diag(sig) V^T`` (U and V are kept)."""
+        e = _log_sig(sig)
+        ep_new = ep
+        cap = q[_Q_FRACTURE_STRAIN]
+        for i in ti.static(range(3)):
+            if e[i] > cap:
+                ep_new += e[i] - cap
+                e[i] = cap
+        d = ti.min(ep_new / q[_Q_FRACTURE_SOFTENING], 1.0)
+        if d >= 1.0:
+            e = ti.min(e, 0.0)
+        s = ti.exp(e)
+        return U @ _diag(s) @ V.transpose(), s, ep_new, d
+
+    @staticmethod
+    @ti.func
+    def damage(ep, q):
+        return ti.min(ep / q[_Q_FRACTURE_SOFTENING], 1.0)
+
+    @staticmethod
+    @ti.func
+    def degrade(tau, U, d):
+        """Stress of a particle with damage d: the tensile principal stresses (in the frame U
+        where the isotropic models' tau is diagonal) fade, compression stays."""
+        t = U.transpose() @ tau @ U
+        tt = ti.Vector([t[0, 0], t[1, 1], t[2, 2]], dt=ti.f32)
+        return U @ _diag(ti.min(tt, 0.0) + (1.0 - d) * ti.max(tt, 0.0)) @ U.transpose()
+
+
 ELASTICITY = {c.name: c for c in (FixedCorotated, NeoHookean, StVKHencky, Volume, FluidElasticity, Rigid)}
 RIGID_MODELS = ("rigid", "identity")  # the kernel's (elasticity, plasticity) pair of a rigid instance
-PLASTICITY = {c.name: c for c in (Identity, JClamp, VonMises, DruckerPrager, FluidPlasticity)}
+RIGID_KEY = RIGID_MODELS + (False,)  # ... and its kernel key (no fracture)
+PLASTICITY = {c.name: c for c in (Identity, JClamp, VonMises, DruckerPrager, MohrCoulomb, FluidPlasticity)}
 
 
 def takes_svd(el: type) -> bool:
@@ -358,6 +445,8 @@ class Material:
     cohesion: float = 0.0
     j_min: float = 0.05
     j_max: float = 1.2
+    fracture_strain: float | None = None
+    fracture_softening: float = DEFAULT_FRACTURE_SOFTENING
     name: str = "material"
     preset: str | None = None
     velocity: tuple = (0.0, 0.0, 0.0)
@@ -379,10 +468,13 @@ class Material:
             if self.yield_stress is None:
                 raise ConfigError(f"{where}: plasticity_params.yield_stress", "von_mises plasticity needs a yield stress in Pa")
             _check_number(f"{where}: plasticity_params.yield_stress", self.yield_stress, lo=0.0, lo_open=True)
-        if self.plasticity == "drucker_prager":
+        if self.plasticity in ("drucker_prager", "mohr_coulomb"):
             if self.friction_angle is None:
-                raise ConfigError(f"{where}: plasticity_params.friction_angle", "drucker_prager plasticity needs a friction angle in degrees")
+                raise ConfigError(f"{where}: plasticity_params.friction_angle", f"{self.plasticity} plasticity needs a friction angle in degrees")
             _check_number(f"{where}: plasticity_params.friction_angle", self.friction_angle, lo=0.0, hi=90.0, hi_open=True)
+        if self.fracture_strain is not None:
+            _check_number(f"{where}: plasticity_params.fracture_strain", self.fracture_strain, lo=0.0, lo_open=True)
+            _check_number(f"{where}: plasticity_params.fracture_softening", self.fracture_softening, lo=0.0, lo_open=True)
         if self.plasticity == "j_clamp":
             _check_number(f"{where}: plasticity_params.j_min", self.j_min, lo=0.0, lo_open=True, hi=1.0)
             _check_number(f"{where}: plasticity_params.j_max", self.j_max, lo=1.0)
@@ -438,6 +530,9 @@ class Material:
         row[COL["cohesion"]] = self.cohesion
         row[COL["j_min"]] = self.j_min
         row[COL["j_max"]] = self.j_max
+        row[COL["sin_phi"]] = math.sin(math.radians(self.friction_angle)) if self.friction_angle is not None else 0.0
+        row[COL["fracture_strain"]] = self.fracture_strain if self.fracture_strain is not None else 0.0
+        row[COL["fracture_softening"]] = self.fracture_softening
         return row.astype(np.float32)
 
     @property
@@ -451,15 +546,27 @@ class Material:
         """``fixed`` (static collider), ``rigid`` (free rigid body) or ``deformable``."""
         return "fixed" if self.fixed else "rigid" if self.rigid else "deformable"
 
+    @property
+    def fractures(self) -> bool:
+        return self.fracture_strain is not None
+
+    @property
+    def kernel_key(self) -> tuple[str, str, bool]:
+        """What the kernels are specialised to: (elasticity, plasticity, fracture on/off);
+        :data:`RIGID_KEY` for a rigid instance (no stress, no fracture)."""
+        return RIGID_KEY if self.rigid else (self.elasticity, self.plasticity, self.fractures)
+
     def describe(self) -> str:
         """One line naming the instance, its models and parameters (used in error messages)."""
         pp = ""
         if self.plasticity == "von_mises":
             pp = f", yield_stress={self.yield_stress:.3g} Pa"
-        elif self.plasticity == "drucker_prager":
+        elif self.plasticity in ("drucker_prager", "mohr_coulomb"):
             pp = f", friction_angle={self.friction_angle:g} deg, cohesion={self.cohesion:g}"
         elif self.plasticity == "j_clamp":
             pp = f", j_min={self.j_min:g}, j_max={self.j_max:g}"
+        if self.fractures:
+            pp += f", fracture_strain={self.fracture_strain:g}, fracture_softening={self.fracture_softening:g}"
         tag = f"{self.preset}: " if self.preset else ""
         if self.rigid:
             what = (f"fixed rigid (static collider, {self.surface}, friction {self.friction:g})" if self.fixed
@@ -497,6 +604,9 @@ class Material:
                 cohesion=full["cohesion"] if full["cohesion"] is not None else 0.0,
                 j_min=full["j_min"] if full["j_min"] is not None else 0.05,
                 j_max=full["j_max"] if full["j_max"] is not None else 1.2,
+                fracture_strain=full["fracture_strain"],
+                fracture_softening=(full["fracture_softening"] if full["fracture_softening"] is not None
+                                    else DEFAULT_FRACTURE_SOFTENING),
                 name=name, preset=entry.get("material"),
                 velocity=tuple(entry.get("velocity") or (0.0, 0.0, 0.0)),
                 rigid=entry.get("rigid") if entry.get("rigid") is not None else False,
@@ -522,6 +632,9 @@ def preset(material: str, name: str | None = None, **overrides: Any) -> Material
         cohesion=pp.get("cohesion") or 0.0,
         j_min=pp.get("j_min") if pp.get("j_min") is not None else 0.05,
         j_max=pp.get("j_max") if pp.get("j_max") is not None else 1.2,
+        fracture_strain=pp.get("fracture_strain"),
+        fracture_softening=(pp.get("fracture_softening") if pp.get("fracture_softening") is not None
+                            else DEFAULT_FRACTURE_SOFTENING),
         name=name or e["name"], preset=e["name"], rigid=bool(e.get("rigid", False)),
     )
     fields.update(overrides)

@@ -6,6 +6,11 @@ frame (stability.py) and calls ``on_frame(frame, time, dt_next)`` for every stab
 failure it stops; with ``keep_backup`` the solver is returned to the last stable frame's state
 (device copy taken after every stable frame).  It never raises for instability: the caller
 decides (forward_sim flags, final_sim raises).
+
+With a :class:`~physgs_steps.mpm.rest.RestPolicy`, a scene that has come to rest is held:
+no substeps until the dynamics' next change point (or the end), the held frames reported
+through ``on_hold(frame, time)`` (``on_frame`` when no ``on_hold`` is given), and the
+rest periods recorded in ``RunResult.rest`` and the log.
 """
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ from typing import Callable
 
 import numpy as np
 
+from .rest import RestPolicy, RestTracker
 from .solver import MPMSolver
 from .stability import Failure, Thresholds, check, explain, failure_info
 from .timestep import StepPlan, TimeStepper
@@ -37,6 +43,8 @@ class RunResult:
     callback_seconds: float = 0.0
     max_speed: float = 0.0
     j_range: list = field(default_factory=lambda: [1.0, 1.0])
+    rest: list = field(default_factory=list)  # rest periods: {"frame", "time", "calm_since", "until_frame", "until_time"}
+    held_frames: int = 0                       # frames held at rest (no substeps)
 
     @property
     def stable(self) -> bool:
@@ -59,6 +67,8 @@ class RunResult:
             "particle_substeps_per_second": rate,
             "max_speed": self.max_speed,
             "j_range": self.j_range,
+            "rest": self.rest,
+            "held_frames": self.held_frames,
             "failure": self.message,
             "failure_info": self.info,
         }
@@ -66,9 +76,11 @@ class RunResult:
 
 def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thresholds,
                on_frame: Callable[[int, float, float], None], log: logging.Logger, *,
-               keep_backup: bool = False, stage: str = "simulation") -> RunResult:
+               keep_backup: bool = False, stage: str = "simulation", rest: RestPolicy | None = None,
+               on_hold: Callable[[int, float], None] | None = None) -> RunResult:
     """Simulate frames 1..n_frames-1 after reporting frame 0; see the module docstring."""
     res = RunResult()
+    tracker = RestTracker(rest, stepper.frame_dt) if rest is not None else None
     c_max = float(np.max(solver.wave_speeds()))
     frame_dt = stepper.frame_dt
     stats = solver.stats()
@@ -86,6 +98,24 @@ def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thres
     every = max(1, (n_frames - 1) // 10)
     t_start = _time.perf_counter()
     for k in range(1, n_frames):
+        if tracker is not None and tracker.held_since is not None:
+            if not tracker.wakes(k):
+                solver.time = k * frame_dt
+                res.held_frames += 1
+                res.substeps.append(0)
+                res.dts.append(0.0)
+                res.cfl.append(0.0)
+                t_cb = _time.perf_counter()
+                if on_hold is not None:
+                    on_hold(k, solver.time)
+                else:
+                    on_frame(k, solver.time, plan.dt)
+                res.callback_seconds += _time.perf_counter() - t_cb
+                res.frames_done = k + 1
+                res.last_stable_frame = k
+                continue
+            log.info("frame %d t=%.2fs: resuming substeps after rest (the dynamics' schedule changes at %.3g s)",
+                     k, (k - 1) * frame_dt, tracker.events[-1]["until_time"])
         for s in range(plan.n):
             if k == 1 and s == 0:
                 t0 = _time.perf_counter()
@@ -118,12 +148,20 @@ def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thres
             solver.save_backup()
         res.frames_done = k + 1
         res.last_stable_frame = k
+        if tracker is not None and k < n_frames - 1 and tracker.observe(k, solver.time, v_max):
+            ev = tracker.events[-1]
+            res.rest = tracker.events
+            until = "the end" if ev["until_time"] is None else f"{ev['until_time']:.3g} s (a change of the dynamics)"
+            log.info("frame %d t=%.2fs: at rest (every particle below %.3g m/s since t=%.2fs): holding the state "
+                     "until %s, no substeps", k, solver.time, rest.speed, ev["calm_since"], until)
         if k % every == 0 or k == n_frames - 1:
             log.info("frame %d/%d t=%.2fs: %d substeps (dt %.2e s, CFL %.2f%s), v_max %.2f m/s, J [%.3f, %.3f], %.1f s",
                      k, n_frames - 1, solver.time, used.n, used.dt, used.cfl, ", capped" if used.over_cfl else "",
                      v_max, float(np.min(stats["j_min"])), float(np.max(stats["j_max"])),
                      _time.perf_counter() - t_start)
     res.step_seconds = _time.perf_counter() - t_start - res.callback_seconds
+    if tracker is not None:
+        res.rest = tracker.events
     return res
 
 

@@ -39,7 +39,8 @@ MODEL_HELP = {
     "plasticity": {
         "identity": "purely elastic, returns to its shape",
         "von_mises": "ductile yielding (metal, clay, bread, viscous goo); needs yield_stress in Pa",
-        "drucker_prager": "granular (sand, snow); needs friction_angle in degrees and cohesion (log-strain offset, 0 for dry sand)",
+        "drucker_prager": "granular, Drucker-Prager cone (Klar et al. 2016); needs friction_angle in degrees and cohesion (log-strain offset, 0 for dry sand)",
+        "mohr_coulomb": "granular (sand, snow), Mohr-Coulomb; needs friction_angle in degrees and cohesion (log-strain offset, 0 for dry sand)",
         "j_clamp": "clamps volume change (snow-like compaction)",
         "fluid": "liquids, no shear memory",
     },
@@ -53,8 +54,8 @@ _ANSWER_HINTS = {
     "nu": "<Poisson's ratio, 0 <= nu < 0.5>",
     "density": "<kg/m^3>",
     "yield_stress": "<Pa, or null unless plasticity is von_mises>",
-    "friction_angle": "<degrees, or null unless plasticity is drucker_prager>",
-    "cohesion": "<number, or null unless plasticity is drucker_prager>",
+    "friction_angle": "<degrees, or null unless plasticity is mohr_coulomb or drucker_prager>",
+    "cohesion": "<number, or null unless plasticity is mohr_coulomb or drucker_prager>",
     "rigid": "<true if the object is visually rigid and should move as one rigid body, else false>",
 }
 

@@ -150,6 +150,7 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     doc = _document(records, backend_name, prompt, kb, mcfg.get("kb_path"))
     if backend is not None:
         doc["backend_config"] = backend.describe()
+    apply_initial_E(doc, mcfg.get("initial_E"), log)
     write_json(outputs["params"], doc)
     sources = {}
     for r in records:
@@ -245,6 +246,26 @@ class _ViewSource:
 
 
 # --------------------------------------------------------------------------- helpers
+def apply_initial_E(doc: dict, initial_E, log: logging.Logger | None = None) -> None:
+    """``materials.initial_E``: give every instance of a params.json document that Young's
+    modulus (Pa), in place, recording the replaced value in its provenance. None: no change.
+    Neither materials.limits nor the material's E_range applies (a deliberate start value,
+    e.g. the corrupted E0 of a BGDO robustness run)."""
+    if initial_E is None:
+        return
+    if isinstance(initial_E, bool) or not isinstance(initial_E, (int, float)) or not np.isfinite(initial_E) \
+            or initial_E <= 0:
+        raise ConfigError("materials.initial_E", f"must be a positive number of Pa or null, got {initial_E!r}")
+    for inst in doc["instances"]:
+        before = inst.get("E")
+        inst["E"] = float(initial_E)
+        inst["provenance"] = {"source": "initial_E", "E_replaced": before, "previous": inst.get("provenance")}
+        if log is not None:
+            log.info("instance %s (%s): E %s -> %.4g Pa (materials.initial_E)", inst.get("label"), inst.get("name"),
+                     "n/a" if before is None else f"{before:.4g}", float(initial_E))
+    doc["initial_E"] = float(initial_E)
+
+
 def _read_labels(path: str) -> np.ndarray:
     try:
         with np.load(path) as z:
@@ -253,8 +274,8 @@ def _read_labels(path: str) -> np.ndarray:
         raise InputError(path, f"cannot read 'labels' from the npz: {e}") from None
     if labels.ndim != 1 or not np.issubdtype(labels.dtype, np.integer):
         raise InputError(path, f"'labels' must be a 1-D integer array, got {labels.dtype} {labels.shape}")
-    if labels.size and labels.min() < 0:
-        raise InputError(path, f"'labels' has negative ids (min {labels.min()})")
+    if labels.size and labels.min() < -1:  # -1: static surroundings (outside region.box), no material
+        raise InputError(path, f"'labels' has ids below -1 (min {labels.min()})")
     return labels
 
 
@@ -303,6 +324,7 @@ def run_pinned(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> d
     scene_cfg = cfg.get("scene") or {}
     clusters = _read_json(inputs["clusters"])
     params = pinned_params(scene_cfg, clusters)
+    apply_initial_E(params, (cfg.get("materials") or {}).get("initial_E"), log)
     write_json(outputs["params"], params)
     log.info("all %d instances pinned in the scene file: no material backend asked; wrote %s",
              len(params["instances"]), outputs["params"])

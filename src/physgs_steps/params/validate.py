@@ -21,9 +21,11 @@ from .. import materials_kb
 from ..errors import ConfigError
 
 PIN_KEYS = ("material", "elasticity", "plasticity", "E", "nu", "density",
-            "yield_stress", "friction_angle", "cohesion", "rigid")
+            "yield_stress", "friction_angle", "cohesion", "fracture_strain", "fracture_softening", "rigid")
 VALUE_KEYS = ("elasticity", "plasticity", "E", "nu", "density")
 PLASTICITY_ANSWER_KEYS = ("yield_stress", "friction_angle", "cohesion")
+# Tearing parameters: a scene may pin them (opt-in tearing); a model is never asked for them.
+PLASTICITY_PIN_KEYS = PLASTICITY_ANSWER_KEYS + ("fracture_strain", "fracture_softening")
 REQUIRED_ANSWER_KEYS = ("material", "elasticity", "plasticity", "E", "nu", "density")
 OPTIONAL_ANSWER_KEYS = ("rigid",)  # asked unless pinned; a missing or unreadable answer keeps the material's flag
 
@@ -70,9 +72,11 @@ def _check_pins(entry: dict, index: int, kb: dict) -> dict:
     checks = {
         "E": lambda v: v > 0, "density": lambda v: v > 0, "nu": lambda v: 0 <= v < 0.5,
         "yield_stress": lambda v: v > 0, "friction_angle": lambda v: 0 <= v < 90, "cohesion": lambda v: v >= 0,
+        "fracture_strain": lambda v: v > 0, "fracture_softening": lambda v: v > 0,
     }
     ranges = {"E": "> 0 Pa", "density": "> 0 kg/m^3", "nu": "in [0, 0.5)", "yield_stress": "> 0 Pa",
-              "friction_angle": "in [0, 90) degrees", "cohesion": ">= 0"}
+              "friction_angle": "in [0, 90) degrees", "cohesion": ">= 0",
+              "fracture_strain": "> 0 (principal Hencky strain)", "fracture_softening": "> 0 (crack opening strain)"}
     for k in ("rigid", "fixed"):
         v = entry.get(k)
         if v is not None and not isinstance(v, bool):
@@ -276,7 +280,7 @@ def finalize_answer(answer: dict, base: dict, pins: dict, kb: dict, limits: dict
             out["rigid"] = r
     _take_plasticity_params(answer, pp, notes, lim)
     out.update({k: pins[k] for k in pins if k in out})
-    for k in PLASTICITY_ANSWER_KEYS:
+    for k in PLASTICITY_PIN_KEYS:
         if k in pins:
             pp[k] = pins[k]
     out["plasticity_params"] = _complete_plasticity_params(out["plasticity"], pp, out["material"], kb, notes)
@@ -331,6 +335,7 @@ def _complete_plasticity_params(model: str, pp: dict, material: str, kb: dict, n
         if full[k] is not None:
             continue
         donors = ([kb[material]] if material in kb else []) + [e for e in kb.values() if e["plasticity"] == model]
+        donors += [e for e in kb.values() if k in materials_kb.REQUIRED_PLASTICITY_PARAMS[e["plasticity"]]]
         for e in donors:
             if e["plasticity_params"].get(k) is not None:
                 full[k] = e["plasticity_params"][k]
@@ -358,6 +363,6 @@ def merge_pins(base: dict, pins: dict, kb: dict) -> tuple[dict, list[dict]]:
     out["rigid"] = bool(base.get("rigid", False))
     out.update({k: pins[k] for k in ("elasticity", "plasticity", "E", "nu", "density", "rigid") if k in pins})
     pp = dict(base["plasticity_params"])
-    pp.update({k: pins[k] for k in PLASTICITY_ANSWER_KEYS if k in pins})
+    pp.update({k: pins[k] for k in PLASTICITY_PIN_KEYS if k in pins})
     out["plasticity_params"] = _complete_plasticity_params(out["plasticity"], pp, out["material"], kb, notes)
     return out, notes

@@ -243,3 +243,88 @@ def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: tor
         opac = opac.clone()
         opac[idx[hide.to(dev)]] = 0.0
     return Gaussians(means=means, covars=covars, opacities=opac, sh=rest.sh, rotations=rots)
+
+
+@dataclass
+class CarrierMap:
+    """The carrier (:mod:`physgs_steps.carrier`) resolved against one final.h5, on one device.
+
+    Simulated gaussian ``rows[i]`` is driven by the stored particles ``index[i]`` (final.h5
+    columns) with ``weight[i]``:
+    ``x = sum_k w_k (x_k + F_k d_k)``, ``F = sum_k w_k F_k``, ``d_k = x_g(0) - x_k(0)``
+    (sim frame). Identity carriers (one driver, weight 1, ``sim.particles: gaussians``) skip
+    the offsets: x = x_k, F = F_k.
+
+    Attributes:
+        rows: [Ns] int64 rows of scene.ply that move (the others are drawn at rest).
+        index: [Ns, K] int64 final.h5 columns (0 where the weight is 0).
+        weight: [Ns, K] float32, rows sum to 1.
+        offset: [Ns, K, 3] float32 rest offsets, or None for an identity carrier.
+    """
+
+    rows: torch.Tensor
+    index: torch.Tensor
+    weight: torch.Tensor
+    offset: torch.Tensor | None
+    chunk: int = 1 << 18
+
+    @property
+    def identity(self) -> bool:
+        return self.offset is None
+
+    @staticmethod
+    def build(carrier, particle_index: np.ndarray, rest_means_sim: np.ndarray, x0: np.ndarray,
+              device="cpu") -> "CarrierMap":
+        """Resolve a :class:`~physgs_steps.carrier.Carrier` against final.h5.
+
+        Args:
+            carrier: the carrier (index into ``carrier.drivers``).
+            particle_index: [M] rows of particles.h5 stored in final.h5 (its columns).
+            rest_means_sim: [N, 3] scene.ply centres (sim frame).
+            x0: [M, 3] stored positions at frame 0 (sim frame).
+        Drivers that final.h5 does not store (instances the simulation left out) count as
+        absent: a gaussian without any stored driver is drawn at rest.
+        """
+        order = np.argsort(particle_index)
+        pos = np.searchsorted(particle_index[order], carrier.drivers)
+        pos = np.minimum(pos, len(order) - 1)
+        stored = particle_index[order][pos] == carrier.drivers
+        col_of_driver = np.where(stored, order[pos], -1)  # [D] final.h5 column of each carrier driver
+        idx = carrier.index.astype(np.int64)
+        col = np.where(idx >= 0, col_of_driver[np.maximum(idx, 0)], -1)  # [N, K]
+        w = np.where(col >= 0, carrier.weight, 0.0).astype(np.float64)
+        tot = w.sum(axis=1)
+        rows = np.flatnonzero(tot > 0)
+        w = (w[rows] / tot[rows, None]).astype(np.float32)
+        col = np.maximum(col[rows], 0)
+        offset = None
+        identity = col.shape[1] == 1
+        if not identity:
+            offset = (rest_means_sim[rows, None, :].astype(np.float64) - x0[col].astype(np.float64)).astype(np.float32)
+        return CarrierMap(rows=torch.from_numpy(rows).to(device), index=torch.from_numpy(col).to(device),
+                          weight=torch.from_numpy(w).to(device),
+                          offset=None if offset is None else torch.from_numpy(offset).to(device))
+
+    def apply(self, x: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Stored states x [M, 3], F [M, 3, 3] -> ([Ns, 3] centres, [Ns, 3, 3] deformation
+        gradients) of the moving gaussians (sim frame)."""
+        if self.identity:
+            i = self.index[:, 0]
+            return x[i], F[i]
+        ns = self.rows.shape[0]
+        xs = torch.empty((ns, 3), dtype=x.dtype, device=x.device)
+        Fs = torch.empty((ns, 3, 3), dtype=F.dtype, device=F.device)
+        for a in range(0, ns, self.chunk):
+            b = min(a + self.chunk, ns)
+            i = self.index[a:b]  # [c, K]
+            w, d = self.weight[a:b].to(x.dtype), self.offset[a:b].to(x.dtype)  # [c, K], [c, K, 3]
+            Fk = F[i]  # [c, K, 3, 3]
+            pred = x[i] + (Fk @ d.unsqueeze(-1)).squeeze(-1)  # [c, K, 3]
+            xs[a:b] = (w.unsqueeze(-1) * pred).sum(dim=1)
+            Fs[a:b] = (w.to(F.dtype)[..., None, None] * Fk).sum(dim=1)
+        return xs, Fs
+
+    def hidden(self, bad: torch.Tensor) -> torch.Tensor:
+        """[Ns] bool moving gaussians with a non-finite driver, from the [M] driver mask."""
+        b = bad.to(self.index.device)[self.index]  # [Ns, K]
+        return (b & (self.weight > 0)).any(dim=1)

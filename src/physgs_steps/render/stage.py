@@ -1,7 +1,13 @@
 """Stage ``render``: final.h5 -> video.mp4, contact_sheet.png, render.json.
 
 Inputs: ``frames`` (final.h5), ``scene`` (scene.ply, sim frame), ``transform``
-(transform.json), optional ``cameras`` (an INRIA cameras.json, source frame).
+(transform.json), ``carrier`` (carrier.h5: which stored particles carry each gaussian),
+optional ``cameras`` (an INRIA cameras.json, source frame).
+
+final.h5 is streamed once, frame after frame; gaussians the simulation does not move
+(static surroundings, static instances) are drawn at rest in every frame. A frame held at
+rest (the same stored row as the frame before) reuses the deformed gaussians, and its image
+too when the camera has not moved.
 Outputs: ``video`` (H.264 mp4), ``contact_sheet`` (PNG grid of frames), ``report``
 (render.json), optional ``frames`` (folder of PNGs; default ``frames/`` next to the video
 when ``render.png_frames`` is set).
@@ -25,13 +31,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..carrier import load_carrier
 from ..config import load_schema, validate
 from ..errors import ConfigError, InputError, RenderError
+from ..final_frames import FinalFrames
 from ..prepare import load_transform
 from ..runtime import project_root, write_json
 from ..scene_io import load_gaussians
 from . import cameras as C
-from .deform import NONFINITE_POLICIES, SourceMap, check_frame, deform, rest_gaussians
+from .deform import NONFINITE_POLICIES, CarrierMap, SourceMap, check_frame, deform, rest_gaussians
 from .renderer import Renderer, RenderSettings, resolve_backend
 from .video import FrameDir, VideoWriter, contact_sheet, sheet_indices, write_png
 
@@ -39,61 +47,6 @@ NEAR_FRACTION = 1e-3  # automatic near plane: this fraction of the scene size
 FAR_FACTOR = 1e3  # automatic far plane: this many scene sizes beyond the farthest camera's distance
 CLIP_WARN_FRACTION = 0.05  # > 5 % of the centres behind the near plane: clipped (inside the box: error)
 COVERED_ALPHA = 0.5  # a pixel counts as covered at accumulated alpha above this
-
-
-# ---------------------------------------------------------------------------- final.h5
-class FinalFrames:
-    """Read-only access to final.h5 (``x`` [T, Nv, 3], ``F`` [T, Nv, 3, 3], ``gaussian_index`` [Nv], ``time`` [T])."""
-
-    def __init__(self, path, n_gaussians: int):
-        import h5py
-
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise InputError(self.path, "frames file not found")
-        try:
-            self.h5 = h5py.File(self.path, "r")
-        except OSError as e:
-            raise InputError(self.path, f"not a readable HDF5 file: {e}") from None
-        missing = [k for k in ("x", "F", "gaussian_index", "time") if k not in self.h5]
-        if missing:
-            self.close()
-            raise InputError(self.path, f"missing datasets {missing} (expected x, F, gaussian_index, time)")
-        x, F = self.h5["x"], self.h5["F"]
-        self.n_frames, self.nv = int(x.shape[0]), int(x.shape[1]) if x.ndim == 3 else -1
-        problems = []
-        if x.ndim != 3 or x.shape[2] != 3:
-            problems.append(f"x has shape {x.shape}, expected [T, Nv, 3]")
-        elif F.shape != (self.n_frames, self.nv, 3, 3):
-            problems.append(f"F has shape {F.shape}, expected {(self.n_frames, self.nv, 3, 3)}")
-        if self.n_frames < 1 or self.nv < 1:
-            problems.append(f"no frames or particles (x has shape {x.shape})")
-        if not problems:
-            self.index = np.asarray(self.h5["gaussian_index"][...], dtype=np.int64)
-            self.time = np.asarray(self.h5["time"][...], dtype=np.float64)
-            if self.index.shape != (self.nv,):
-                problems.append(f"gaussian_index has shape {self.index.shape}, expected ({self.nv},)")
-            elif self.index.min() < 0 or self.index.max() >= n_gaussians:
-                problems.append(f"gaussian_index spans [{self.index.min()}, {self.index.max()}], "
-                                f"scene.ply has {n_gaussians} gaussians")
-            elif np.unique(self.index).size != self.nv:
-                problems.append("gaussian_index has repeated rows")
-            if self.time.shape != (self.n_frames,):
-                problems.append(f"time has shape {self.time.shape}, expected ({self.n_frames},)")
-        if problems:
-            self.close()
-            raise InputError(self.path, "; ".join(problems))
-
-    def x(self, t: int) -> np.ndarray:
-        """[Nv, 3] float32 sim-frame positions of frame t."""
-        return np.asarray(self.h5["x"][t], dtype=np.float32)
-
-    def F(self, t: int) -> np.ndarray:
-        """[Nv, 3, 3] float32 deformation gradients of frame t."""
-        return np.asarray(self.h5["F"][t], dtype=np.float32)
-
-    def close(self) -> None:
-        self.h5.close()
 
 
 # ---------------------------------------------------------------------------- config
@@ -146,25 +99,25 @@ def image_size(rcfg: dict, ccfg: dict) -> tuple[int, int]:
 
 
 # ---------------------------------------------------------------------------- cameras
-def motion_bounds(frames: FinalFrames, sel: list[int], smap: SourceMap, rest_means: torch.Tensor,
-                  static_rows: np.ndarray, max_rows: int = 20000) -> tuple[np.ndarray, np.ndarray]:
-    """Union over the selected frames of the 1-99 % box of the source-frame centres ([3] lo, [3] hi)."""
-    stride = max(1, int(math.ceil(frames.nv / max_rows)))
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    pts = []
+def motion_bounds(frames: FinalFrames, smap: SourceMap, rest_means: torch.Tensor,
+                  static_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Source-frame box ([3] lo, [3] hi) of the motion: final.h5's ``motion_box`` (the union
+    over frames of the 1-99 % box of the stored positions, recorded while simulating; a
+    sim-frame box is mapped back through its corners); with nothing simulated, the 1-99 %
+    box of the static gaussians."""
+    box = frames.motion_box
+    if box is not None:
+        frame, lo, hi = box
+        if frame == "source":
+            return lo, hi
+        corners = np.array([[(hi if (c >> a) & 1 else lo)[a] for a in range(3)] for c in range(8)])  # [8, 3]
+        src = smap.points(torch.from_numpy(corners)).numpy()
+        return src.min(axis=0), src.max(axis=0)
     if static_rows.size:
-        pts.append(rest_means[torch.as_tensor(static_rows[::stride], device=rest_means.device)].double().cpu().numpy())
-    for t in sel:
-        x = torch.from_numpy(frames.x(t)[::stride]).double()
-        x = x[torch.isfinite(x).all(dim=1)]
-        if x.shape[0]:
-            pts.append(smap.points(x).numpy())
-    for p in pts:
+        p = rest_means[torch.as_tensor(static_rows, device=rest_means.device)].double().cpu().numpy()
         b = np.percentile(p, [1.0, 99.0], axis=0)
-        lo, hi = np.minimum(lo, b[0]), np.maximum(hi, b[1])
-    if not np.isfinite(lo).all():
-        raise RenderError(f"{frames.path}: no finite particle positions in the rendered frames")
-    return lo, hi
+        return b[0], b[1]
+    raise RenderError(f"{frames.path}: no finite particle positions in the rendered frames")
 
 
 def build_cameras(ccfg: dict, rcfg: dict, frame_ids: list[int], bounds, cameras_path, log: logging.Logger) -> tuple[list[C.Camera], dict]:
@@ -287,28 +240,29 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     transform = load_transform(inputs["transform"])
     smap = SourceMap.from_transform(transform)
     scene = load_gaussians(inputs["scene"], log)
-    frames = FinalFrames(inputs["frames"], scene.n)
-    try:
-        return _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, frames, dev, log, t_start,
-                           scene_size(transform))
-    finally:
-        frames.close()
+    carrier = load_carrier(inputs["carrier"], scene.n)
+    with FinalFrames(inputs["frames"]) as frames:
+        return _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, carrier, frames, dev,
+                           log, t_start, scene_size(transform))
 
 
-def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, frames, dev, log, t_start,
-                size: float) -> dict:
+def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, carrier, frames, dev, log,
+                t_start, size: float) -> dict:
     rest = rest_gaussians(scene, smap, dev)
-    index = torch.from_numpy(frames.index).to(dev)
-    static_rows = np.setdiff1d(np.arange(scene.n), frames.index)
-    if static_rows.size:
-        log.info("%d of %d gaussians are not in final.h5 and are drawn at rest", static_rows.size, scene.n)
+    t0 = time.perf_counter()
+    cmap = CarrierMap.build(carrier, frames.particle_index, scene.means, frames.x(0), dev)
+    index = cmap.rows
+    static_rows = np.setdiff1d(np.arange(scene.n), index.cpu().numpy())
+    log.info("carrier: %d gaussians move with %d stored particles (%s, %d per gaussian), %d drawn at rest; %.2f s",
+             index.numel(), frames.m, "identity" if cmap.identity else "budget", cmap.index.shape[1],
+             static_rows.size, time.perf_counter() - t0)
     sel = list(range(0, frames.n_frames, int(rcfg["every_nth"])))
     degree = renderer.degree(rest)
-    log.info("%d gaussians, %d simulated, %d of %d frames to render, SH degree %d", scene.n, frames.nv, len(sel),
-             frames.n_frames, degree)
+    log.info("%d gaussians, %d simulated, %d of %d frames to render (%d distinct stored states), SH degree %d",
+             scene.n, index.numel(), len(sel), frames.n_frames, len({frames.row(t) for t in sel}), degree)
 
     cams, cam_record = build_cameras(
-        ccfg, rcfg, sel, lambda: motion_bounds(frames, sel, smap, rest.means, static_rows),
+        ccfg, rcfg, sel, lambda: motion_bounds(frames, smap, rest.means, static_rows),
         inputs.get("cameras"), log)
     renderer.settings.near, renderer.settings.far = clip_planes(rcfg, size, cams, smap.src_center)
     log.info("clipping planes near %.4g, far %.4g source units (scene size %.4g units%s)", renderer.settings.near,
@@ -324,25 +278,54 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     if rcfg["png_frames"]:
         frame_dir = FrameDir(outputs.get("frames") or Path(outputs["video"]).parent / "frames")
     batch = int(rcfg["batch"]) if backend == "gsplat" else 1
-    t_render = 0.0
+    t_render = t_deform = 0.0
     next_log = 0.1
+    prev = None      # (stored row, gaussians, camera) of the previous frame
+    prev_img = None  # (image, alpha) of the previous frame
+    reused = {"states": 0, "images": 0}
     try:
         with VideoWriter(outputs["video"], width, height, rcfg["fps"], rcfg["crf"]) as vw:
             for b0 in range(0, len(sel), batch):
                 ids = sel[b0:b0 + batch]
-                gs = []
-                for t in ids:
-                    x, F = frames.x(t), frames.F(t)
-                    bad = check_frame(t, x, F, rcfg["on_nonfinite"])
-                    if bad is not None:
-                        hidden[t] = int(bad.sum())
-                        log.warning("frame %d: %d particles with NaN/inf are hidden", t, hidden[t])
-                    g = deform(rest, index, torch.from_numpy(x), torch.from_numpy(F), smap, degree > 0, bad)
-                    obj = g.means[index] if bad is None else g.means[index[~bad.to(dev)]]  # the simulated object
-                    check_camera(t, obj, cams[b0 + len(gs)], renderer.settings.near, clipped)
+                gs, copy = [], []  # copy[j]: frame j repeats the previous frame's image
+                for j, t in enumerate(ids):
+                    cam = cams[b0 + j]
+                    row = frames.row(t)
+                    if prev is not None and prev[0] == row:  # held at rest: the state of the frame before
+                        g = prev[1]
+                        reused["states"] += 1
+                        same = np.array_equal(prev[2].viewmat, cam.viewmat) and np.array_equal(prev[2].K, cam.K)
+                    else:
+                        t0 = time.perf_counter()
+                        x, F = frames.x(t), frames.F(t)
+                        bad = check_frame(t, x, F, rcfg["on_nonfinite"])
+                        if bad is not None:
+                            log.warning("frame %d: %d stored particles with NaN/inf: the gaussians they carry are hidden",
+                                        t, int(bad.sum()))
+                        xs, Fs = cmap.apply(torch.from_numpy(x).to(dev), torch.from_numpy(F).to(dev))
+                        hide = None if bad is None else cmap.hidden(torch.as_tensor(bad))
+                        if hide is not None:
+                            hidden[t] = int(hide.sum())
+                        g = deform(rest, index, xs, Fs, smap, degree > 0, hide)
+                        t_deform += time.perf_counter() - t0
+                        obj = g.means[index] if hide is None else g.means[index[~hide.to(dev)]]  # the simulated object
+                        check_camera(t, obj, cam, renderer.settings.near, clipped)
+                        same = False
                     gs.append(g)
+                    copy.append(same)
+                    prev = (row, g, cam)
                 t0 = time.perf_counter()
-                imgs, alphas = renderer.render_frames(gs, cams[b0:b0 + len(ids)])
+                todo = [j for j in range(len(ids)) if not copy[j]]
+                imgs, alphas = [None] * len(ids), [None] * len(ids)
+                if todo:
+                    ri, ra = renderer.render_frames([gs[j] for j in todo], [cams[b0 + j] for j in todo])
+                    for n_, j in enumerate(todo):
+                        imgs[j], alphas[j] = ri[n_], ra[n_]
+                for j in range(len(ids)):
+                    if copy[j]:
+                        imgs[j], alphas[j] = (imgs[j - 1], alphas[j - 1]) if j > 0 else prev_img
+                        reused["images"] += 1
+                prev_img = (imgs[-1], alphas[-1])
                 t_render += time.perf_counter() - t0
                 for k, t in enumerate(ids):
                     pos = b0 + k
@@ -378,7 +361,9 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     seconds = time.perf_counter() - t_start
     report = {
         "backend": backend, "backend_reason": why, "device": str(dev),
-        "n_gaussians": scene.n, "n_simulated": frames.nv, "n_static": int(static_rows.size),
+        "n_gaussians": scene.n, "n_simulated": int(index.numel()), "n_static": int(static_rows.size),
+        "n_stored_particles": frames.m, "carrier": "identity" if cmap.identity else f"budget ({cmap.index.shape[1]} per gaussian)",
+        "reused": reused, "deform_seconds": round(t_deform, 3),
         "frames_rendered": len(sel), "frames_total": frames.n_frames, "every_nth": int(rcfg["every_nth"]),
         "width": width, "height": height, "fps": rcfg["fps"], "sh_degree": degree,
         "camera": cam_record,

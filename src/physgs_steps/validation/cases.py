@@ -1,0 +1,468 @@
+"""The validation cases: one small class per physical test (set-up, reference, error measure).
+
+Geometry is in metres.  Slab cases (granular column, dam break) are plane-strain: the material
+is a few cells thick along y between two slip walls.  Walls and floors are surface colliders
+placed on grid-node planes ``WALL_CELLS`` cells inside the domain (clear of the solver's own
+3-node domain walls), and every measurement is taken relative to them.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from ..mpm import Dynamics, Material, preset
+from .base import LOG, Case, RunRecord, Scene, Setting, front_position, rel, simulate, sine_fit
+
+G = 9.8  # m/s^2, the solver's default gravity
+WALL_CELLS = 4  # walls/floors sit on the node plane this many cells inside the domain
+SLAB_CELLS = 4  # plane-strain slabs are this many cells thick (y)
+
+
+def _collider(point, normal, surface: str = "slip", friction: float = 0.0) -> dict:
+    return {"type": "surface_collider", "point": list(map(float, point)), "normal": list(map(float, normal)),
+            "surface": surface, "friction": float(friction), "start_time": 0.0}
+
+
+def channel(L: float, dx: float, *, floor: tuple = ("slip", 0.0), back_wall: bool = True,
+            slab: float | None = None, gravity=(0.0, 0.0, -G)) -> tuple[Dynamics, dict]:
+    """Dynamics of a channel in a domain of side ``L`` (m): a floor (surface, friction), a back
+    wall at x = x0 (slip), and, for a plane-strain slab of thickness ``slab`` (m), two slip
+    walls in y.  Returns (dynamics, origin {"x0", "y0", "y1", "z0"} in metres)."""
+    o = WALL_CELLS * dx
+    walls = [_collider((0.5, 0.5, o / L), (0, 0, 1), floor[0], floor[1])]
+    org = {"x0": o, "z0": o, "y0": o, "y1": L - o}
+    if back_wall:
+        walls.append(_collider((o / L, 0.5, 0.5), (1, 0, 0)))
+    if slab is not None:
+        org["y1"] = o + slab
+        walls.append(_collider((0.5, o / L, 0.5), (0, 1, 0)))
+        walls.append(_collider((0.5, (o + slab) / L, 0.5), (0, -1, 0)))
+    return Dynamics(gravity=tuple(gravity), boundary="slip", boundary_conditions=walls), org
+
+
+def domain_for(extent: float, n_grid: int) -> float:
+    """Domain side (m) whose interior, WALL_CELLS + 1 cells in from both sides, spans ``extent``."""
+    return extent / (1.0 - 2.0 * (WALL_CELLS + 1) / n_grid)
+
+
+# ============================================================================ free fall
+class FreeFall(Case):
+    name = "free_fall"
+    title = "Free fall of an elastic block"
+    reference = ("Exact: z(t) = z0 - g t^2 / 2 with g = 9.8 m/s^2 (Newton); every particle of a block released "
+                 "at rest in vacuum follows it, whatever the substep count.")
+    notes = ("Symplectic Euler from v0 (the solver before #14) drops x_n = g dt^2 n (n + 1) / 2, a relative error "
+             "1/n after n substeps, set by the substep count rather than the physics; with leapfrog velocities the "
+             "drop is exact for any n and any sequence of dt (what is left is float32 rounding of the positions)")
+    error_doc = "largest |z - z_exact| over particles and frames, relative to the drop g t^2/2 at that frame"
+    grids = {"smoke": (16,), "cpu": (16, 24, 32, 48, 64), "full": (32, 64, 128)}
+
+    def run_variant(self, variant, setting, *, backend, timeout_s, log):
+        m = Material("fixed_corotated", "identity", E=1e5, nu=0.3, density=1000.0, name="block", preset="jelly")
+        sc = Scene.block(m, (0.425, 0.425, 0.70), (0.575, 0.575, 0.85), setting, 1.0)
+        z0 = sc.x[:, 2].copy()
+        errs, xy = [], []
+
+        def on_frame(k, t, st):
+            if k == 0:
+                return
+            drop = 0.5 * G * t * t
+            errs.append(float(np.max(np.abs(st["x"][:, 2] - (z0 - drop)))) / drop)
+            xy.append(float(np.max(np.abs(st["x"][:, :2] - sc.x[:, :2]))))
+
+        out = simulate(sc, setting, fps=30.0, n_frames=10, on_frame=on_frame, backend=backend, timeout_s=timeout_s, log=log)
+        err = max(errs) if errs else None
+        return self.record(variant, setting, out, err, {"final_rel_error": errs[-1] if errs else None,
+                                                        "horizontal_drift_m": max(xy) if xy else None,
+                                                        "drop_m": 0.5 * G * 0.3 ** 2})
+
+
+# ============================================================================ axial vibration
+class AxialVibration(Case):
+    name = "axial_vibration"
+    title = "First axial mode of a free elastic bar"
+    reference = ("Free-free bar (nu = 0, so no lateral coupling): first axial mode u = U cos(pi x / l) sin(w t) with "
+                 "f1 = c / (2 l), c = sqrt(E / rho) (e.g. Graff, Wave Motion in Elastic Solids, 1975, sec. 2.2); "
+                 "here l = 0.5 m, E = 1e5 Pa, rho = 1000 kg/m^3: c = 10 m/s, f1 = 10 Hz.  The bar starts "
+                 "undeformed with the mode's velocity field v = V cos(pi x / l), V = 0.05 m/s.")
+    notes = ("The frequency error comes from the spatial discretisation (a quadratic B-spline grid is slightly "
+             "softer than the continuum at a few cells per half wavelength) and shrinks with n_grid.  "
+             "`amplitude_ratio` measures energy kept: with C = 0 at the start the first substep lost a tenth of the "
+             "bar's kinetic energy at n_grid 16; C from the initial velocity field keeps it")
+    error_doc = "|f - f1| / f1, f from a least-squares sine fit of the bar's end-to-end length over three periods"
+    grids = {"smoke": (16,), "cpu": (16, 24, 32, 48, 64), "full": (32, 64, 128)}
+
+    length, V, E, rho = 0.5, 0.05, 1e5, 1000.0
+
+    def run_variant(self, variant, setting, *, backend, timeout_s, log):
+        m = Material("fixed_corotated", "identity", E=self.E, nu=0.0, density=self.rho, name="bar", preset="jelly")
+        l, s = self.length, 0.125
+        lo = np.array([0.25, 0.5 - s / 2, 0.5 - s / 2])
+        sc = Scene.block(m, lo, lo + (l, s, s), setting, 1.0, Dynamics.free(gravity=(0, 0, 0)),
+                         velocity=lambda x: np.c_[self.V * np.cos(math.pi * (x[:, 0] - lo[0]) / l), 0 * x[:, :2]])
+        X = sc.x[:, 0] - lo[0]
+        left, right = X < l / 8, X > 7 * l / 8
+        mass = sc.mass
+        c = math.sqrt(self.E / self.rho)
+        f1 = c / (2 * l)
+        w = 2 * math.pi * f1
+        ts, gap, ke = [], [], []
+
+        def on_frame(k, t, st):
+            ts.append(t)
+            gap.append(st["x"][right, 0].mean() - st["x"][left, 0].mean())
+            ke.append(0.5 * float(np.sum(mass * np.sum(st["v"] ** 2, 1))))
+
+        fps = 200.0
+        out = simulate(sc, setting, fps=fps, n_frames=int(3 / f1 * fps) + 1, on_frame=on_frame, backend=backend,
+                       timeout_s=timeout_s, log=log)
+        if not out.stable or len(ts) < 10:
+            return self.record(variant, setting, out, None, {})
+        f, A, resid = sine_fit(np.array(ts), np.array(gap), f1)
+        seg = 8 / math.pi * math.sin(math.pi / 8)  # mean of cos(pi x / l) over an end eighth
+        A_ref = 2 * self.V / w * seg
+        return self.record(variant, setting, out, rel(f, f1), {
+            "f_hz": f, "f_ref_hz": f1, "amplitude_ratio": A / A_ref, "fit_residual": resid,
+            "ke_ratio_first_frame": ke[1] / ke[0] if len(ke) > 1 else None},
+            {"t": ts, "gap_m": [g - l for g in gap]})
+
+
+# ============================================================================ rigid rotation
+class RigidRotation(Case):
+    name = "rigid_rotation"
+    title = "Free rigid rotation of an elastic block"
+    reference = ("Exact: a free body spinning at w about a principal axis keeps its angular momentum L = I w and its "
+                 "kinetic energy I w^2 / 2 (Euler); APIC transfers conserve angular momentum exactly (Jiang et al. "
+                 "2015, 'The affine particle-in-cell method', sec. 5.3).  Block 0.2 m, w = 2 pi rad/s about z, "
+                 "E = 1e6 Pa (centrifugal strain 4e-4), half a turn.")
+    notes = ("APIC conserves angular momentum exactly only when C carries the rotation: starting from C = 0 the "
+             "first transfer threw away the velocity variation inside each cell (44% of the kinetic energy at n_grid "
+             "16, 13% at 32).  With C initialised from the velocity field what remains is the slow drift of a "
+             "rotating elastic body on a grid")
+    error_doc = "largest relative change of the kinetic energy over the frames (0 = rigid rotation kept)"
+    grids = {"smoke": (16,), "cpu": (16, 24, 32, 48, 64), "full": (32, 64, 128)}
+    omega = 2 * math.pi
+
+    def run_variant(self, variant, setting, *, backend, timeout_s, log):
+        m = Material("fixed_corotated", "identity", E=1e6, nu=0.3, density=1000.0, name="block", preset="jelly")
+        c = np.array([0.5, 0.5, 0.5])
+        w = np.array([0.0, 0.0, self.omega])
+        sc = Scene.block(m, c - 0.1, c + 0.1, setting, 1.0, Dynamics.free(gravity=(0, 0, 0)),
+                         velocity=lambda x: np.cross(w, x - c))
+        mass = sc.mass
+        r0 = sc.x - c
+        ke0 = 0.5 * float(np.sum(mass * np.sum(np.cross(w, r0) ** 2, 1)))
+        L0 = float(np.sum(mass * np.cross(r0, np.cross(w, r0))[:, 2]))
+        ts, ke, Lz, pos = [], [], [], []
+
+        def on_frame(k, t, st):
+            r = st["x"] - c
+            ts.append(t)
+            ke.append(0.5 * float(np.sum(mass * np.sum(st["v"] ** 2, 1))))
+            Lz.append(float(np.sum(mass * np.cross(r, st["v"])[:, 2])))
+            a = self.omega * t
+            R = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+            pos.append(float(np.sqrt(np.mean(np.sum((r - r0 @ R.T) ** 2, 1)))))
+
+        out = simulate(sc, setting, fps=60.0, n_frames=31, on_frame=on_frame, backend=backend, timeout_s=timeout_s, log=log)
+        if len(ke) < 2:
+            return self.record(variant, setting, out, None, {})
+        err = max(abs(k / ke0 - 1) for k in ke[1:])
+        return self.record(variant, setting, out, err, {
+            "ke_ratio_end": ke[-1] / ke0, "ke_ratio_first_frame": ke[1] / ke0, "angular_momentum_ratio_end": Lz[-1] / L0,
+            "position_rms_error_m": pos[-1]}, {"t": ts, "ke_ratio": [k / ke0 for k in ke]})
+
+
+# ============================================================================ incline with Coulomb friction
+class Incline(Case):
+    name = "incline_friction"
+    title = "Block on a rough incline (Coulomb friction)"
+    reference = ("Rigid block on a plane inclined at theta with Coulomb friction mu (e.g. any mechanics text): it "
+                 "slides with a = g (sin theta - mu cos theta) when tan theta > mu, else stays at rest.  Variant "
+                 "`slide`: theta = 30 deg, mu = 0.3, a = 2.35 m/s^2, s(0.4 s) = 0.188 m; variant `stick`: theta = "
+                 "20 deg, mu = 0.5, s = 0.  The incline is modelled by tilting gravity over a flat frictional floor.")
+    notes = ("Friction acts on grid nodes behind the floor plane (grid-side colliders, issue #15), so the "
+             "friction a block feels depends on how much of its stencil reaches those nodes: the slide error is a "
+             "boundary-placement error and shrinks with n_grid")
+    error_doc = ("slide: |s - s_ref| / s_ref; stick: |s| / s_free, s_free = g sin(theta) t^2 / 2 (the frictionless "
+                 "slide); s is the block's mean displacement along the slope after 0.4 s")
+    variants = ("slide", "stick")
+    smoke_variants = ("slide",)
+    grids = {"smoke": (16,), "cpu": (16, 24, 32, 48, 64), "full": (32, 64, 128)}
+    angles = {"slide": (30.0, 0.3), "stick": (20.0, 0.5)}
+
+    def run_variant(self, variant, setting, *, backend, timeout_s, log):
+        theta, mu = self.angles[variant]
+        th = math.radians(theta)
+        g = (G * math.sin(th), 0.0, -G * math.cos(th))
+        dx = 1.0 / setting.n_grid
+        dyn, o = channel(1.0, dx, floor=("separate", mu), back_wall=False, gravity=g)
+        m = Material("fixed_corotated", "identity", E=1e6, nu=0.3, density=1000.0, name="block", preset="rubber")
+        lo = np.array([0.2, 0.45, o["z0"]])
+        sc = Scene.block(m, lo, lo + (0.1, 0.1, 0.05), setting, 1.0, dyn)
+        x0 = sc.x[:, 0].mean()
+        T = 0.4
+        ts, s = [], []
+
+        def on_frame(k, t, st):
+            ts.append(t)
+            s.append(float(st["x"][:, 0].mean() - x0))
+
+        out = simulate(sc, setting, fps=30.0, n_frames=13, on_frame=on_frame, backend=backend, timeout_s=timeout_s, log=log)
+        if len(s) < 13:
+            return self.record(variant, setting, out, None, {})
+        a = G * (math.sin(th) - mu * math.cos(th))
+        s_free = 0.5 * G * math.sin(th) * T * T
+        if a > 0:
+            s_ref = 0.5 * a * T * T
+            err = rel(s[-1], s_ref)
+        else:
+            s_ref = 0.0
+            err = abs(s[-1]) / s_free
+        return self.record(variant, setting, out, err, {"s_m": s[-1], "s_ref_m": s_ref, "theta_deg": theta, "mu": mu},
+                           {"t": ts, "s_m": s})
+
+
+# ============================================================================ elastic column under its own weight
+class SelfWeight(Case):
+    name = "self_weight"
+    title = "Elastic column compressed by its own weight"
+    reference = ("Static equilibrium of a column of height H on a floor (nu = 0, fixed corotated: Cauchy stress "
+                 "E (lambda - 1) in uniaxial strain, exact at large strain): lambda(Z) = 1 - rho g (H - Z) / E, so a "
+                 "point at height Z moves down by rho g (H Z - Z^2 / 2) / E (Timoshenko & Goodier, Theory of "
+                 "Elasticity, 1970, sec. 96: bar under its own weight).  H = 0.3 m, E = 3e4 Pa, rho = 1000: "
+                 "shortening 14.7 mm.  Grid damping 20 1/s lets the column settle within 1 s without changing "
+                 "the static state.")
+    notes = ("At n_grid 16 the column is five cells tall and the floor's effective position (nodes behind the "
+             "plane, issue #15) is a large fraction of it; the error falls to about 1% at 32")
+    error_doc = "|d - d_ref| / d_ref, d the shortening between the top and bottom tenths of the column after 1 s"
+    grids = {"smoke": (16,), "cpu": (16, 24, 32, 48, 64), "full": (32, 64, 128)}
+    H, E, rho = 0.3, 3e4, 1000.0
+
+    def run_variant(self, variant, setting, *, backend, timeout_s, log):
+        dx = 1.0 / setting.n_grid
+        dyn, o = channel(1.0, dx, floor=("separate", 0.0), back_wall=False)
+        dyn.damping = 20.0
+        m = Material("fixed_corotated", "identity", E=self.E, nu=0.0, density=self.rho, name="column", preset="jelly")
+        lo = np.array([0.45, 0.45, o["z0"]])
+        sc = Scene.block(m, lo, lo + (0.1, 0.1, self.H), setting, 1.0, dyn)
+        Z = sc.x[:, 2] - o["z0"]
+        top, bot = Z > 0.9 * self.H, Z < 0.1 * self.H
+        u = lambda z: self.rho * G * (self.H * z - z * z / 2) / self.E  # noqa: E731 (downward displacement)
+        d_ref = float(u(Z[top]).mean() - u(Z[bot]).mean())
+        h0 = float(sc.x[top, 2].mean() - sc.x[bot, 2].mean())
+        ts, d = [], []
+
+        def on_frame(k, t, st):
+            ts.append(t)
+            d.append(h0 - float(st["x"][top, 2].mean() - st["x"][bot, 2].mean()))
+
+        out = simulate(sc, setting, fps=30.0, n_frames=31, on_frame=on_frame, backend=backend, timeout_s=timeout_s, log=log)
+        if len(d) < 31:
+            return self.record(variant, setting, out, None, {})
+        return self.record(variant, setting, out, rel(d[-1], d_ref), {"shortening_m": d[-1], "shortening_ref_m": d_ref},
+                           {"t": ts, "shortening_m": d})
+
+
+# ============================================================================ granular column collapse
+def lube_2005(a: float) -> tuple[float, float]:
+    """Lube et al. 2005 (Phys. Rev. E 72, 041301), planar collapses: (L_inf - L0) / L0 = 1.2 a for
+    a < 1.8, 1.9 a^(2/3) for a > 2.8; in between both fits bound the data: (low, high)."""
+    lin, pw = 1.2 * a, 1.9 * a ** (2 / 3)
+    if a < 1.8:
+        return lin, lin
+    if a > 2.8:
+        return pw, pw
+    return min(lin, pw), max(lin, pw)
+
+
+def lajeunesse_2005(a: float) -> tuple[float, float]:
+    """Lajeunesse, Monnier & Homsy 2005 (Phys. Fluids 17, 103302), channel collapses: 1.8 a for a < 3,
+    2.3 a^(2/3) for a > 3 (fit constants as tabulated by Lagree, Staron & Popinet 2011, JFM 686,
+    eq. 3.1)."""
+    return (1.8 * a, 1.8 * a) if a <= 3 else (2.3 * a ** (2 / 3),) * 2
+
+
+def runout_band(a: float) -> tuple[float, float]:
+    """The laboratory band of the normalised runout at aspect ratio a: from the lower of the two
+    laws to the higher."""
+    lo1, hi1 = lube_2005(a)
+    lo2, hi2 = lajeunesse_2005(a)
+    return min(lo1, lo2), max(hi1, hi2)
+
+
+class ColumnCollapse(Case):
+    name = "column_collapse"
+    title = "Granular column collapse: runout against aspect ratio"
+    reference = ("Planar (channel) collapses of dry granular columns of width L0 and height H = a L0 against a back "
+                 "wall: (L_inf - L0) / L0 = 1.2 a (a < 1.8), 1.9 a^(2/3) (a > 2.8) (Lube, Huppert, Sparks & Freundt "
+                 "2005, Phys. Rev. E 72, 041301) and 1.8 a (a < 3), 2.3 a^(2/3) (a > 3) (Lajeunesse, Monnier & Homsy "
+                 "2005, Phys. Fluids 17, 103302; constants as in Lagree, Staron & Popinet 2011, JFM 686, eq. 3.1). "
+                 "The band between the two laws is the laboratory scatter.  Sand: the knowledge base's `sand` (its "
+                 "elasticity and plasticity models, E = 2e5 Pa, nu = 0.3, 1600 kg/m^3) at friction angle 30 deg; L0 = 0.1 m; floor with Coulomb friction mu = tan(30 deg) (a rough bed of "
+                 "the same grains); slip back and side walls; plane strain (slab 4 cells thick).")
+    notes = ("Causes measured (aspect ratio 2, n_grid 32 unless said): (1) the Drucker-Prager cone "
+             "matched to triaxial compression (Klar et al. 2016) is, in plane strain with volume-preserving flow, a "
+             "Mohr-Coulomb material of sin(phi') = 3 alpha / sqrt(2) (44 deg for phi = 30 deg): runout 1.57 with "
+             "Drucker-Prager, 1.84 with the Mohr-Coulomb surface itself, which sand and snow now use; (2) resolution: "
+             "the column is only L0 / dx = 3.6 cells wide at n_grid 32 (the domain must hold the runout), 5.4 at 48, "
+             "7.2 at 64, and the runout rises 1.84, 2.80, 3.24 (in the band from 48 on); the thin flowing front "
+             "shares grid cells with the deposit below, a numerical cohesion that shrinks with dx; (3) basal "
+             "friction decides the runout: a frictionless floor gives 6.1 (far beyond the band), the rough bed "
+             "(mu = tan phi) is used; (4) elastic stiffness: E = 5e4 gives 2.25, 2e5 gives 1.84 (the return map "
+             "keeps the elastic volume change, so softer sand spreads further); (5) CFL 0.25 vs 0.5 changes it by "
+             "under 1% (not a time-step effect)")
+    error_doc = ("|r - r_mid| / r_mid, r = (L_inf - L0) / L0 measured, r_mid the middle of the laboratory band "
+                 "(inside the band: error <= (hi - lo) / (hi + lo), 0.2 for a < 1.8)")
+    variants = ("a0.5", "a1", "a2", "a3")
+    smoke_variants = ("a0.5",)
+    grids = {"smoke": (24,), "cpu": (24, 32, 48, 64), "full": (32, 64, 96, 128)}
+    ppcs = {"smoke": (), "cpu": (1, 27), "full": (27,)}
+    cfls = {"smoke": (), "cpu": (0.25, 0.9), "full": (0.25,)}
+    L0 = 0.1
+    friction_angle = 30.0
+
+    has_physics_plot = True
+
+    def physics_plot(self, ax, records):
+        a = np.linspace(0.3, 3.3, 61)
+        ax.fill_between(a, [runout_band(v)[0] for v in a], [runout_band(v)[1] for v in a], color="0.85",
+                        label="laboratory band (Lube 2005 - Lajeunesse 2005)")
+        lad = sorted({r["setting"] for r in records if r["setting"].endswith("-p8-c0.5")}, key=Setting.parse)
+        for sid in lad:
+            pts = sorted((float(r["variant"][1:]), r["metrics"]["runout"]) for r in records
+                         if r["setting"] == sid and r["error"] is not None)
+            if pts:
+                ax.plot(*zip(*pts), "o-", label=sid)
+        ax.set_xlabel("aspect ratio a = H / L0")
+        ax.set_ylabel("(L_inf - L0) / L0")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+
+    def material(self) -> Material:
+        """The knowledge base's sand (its models, E, nu, density) at a 30 deg friction angle."""
+        return preset("sand", friction_angle=self.friction_angle, cohesion=0.0)
+
+    def run_variant(self, variant, setting, *, backend, timeout_s, log):
+        a = float(variant[1:])
+        lo_b, hi_b = runout_band(a)
+        H = a * self.L0
+        extent = max(self.L0 * (1.0 + 1.4 * hi_b), H * 1.05)
+        L = domain_for(extent, setting.n_grid)
+        dx = L / setting.n_grid
+        slab = SLAB_CELLS * dx
+        mu_b = math.tan(math.radians(self.friction_angle))
+        dyn, o = channel(L, dx, floor=("separate", mu_b), slab=slab)
+        lo = np.array([o["x0"], o["y0"], o["z0"]])
+        sc = Scene.block(self.material(), lo, lo + (self.L0, slab, H), setting, L, dyn)
+        h = dx / setting.per_axis
+        layer = SLAB_CELLS * setting.per_axis  # particles in one layer across the slab
+        t_end = 6.0 * math.sqrt(H / G) + 0.2
+        fps = 30.0
+        n_frames = int(math.ceil(t_end * fps)) + 1
+        ts, front, vmax = [], [], []
+
+        def on_frame(k, t, st):
+            ts.append(t)
+            front.append(front_position(st["x"], 0, h, layer, o["x0"]) - o["x0"])
+            vmax.append(float(np.max(np.linalg.norm(st["v"], axis=1))))
+
+        out = simulate(sc, setting, fps=fps, n_frames=n_frames, on_frame=on_frame, backend=backend, timeout_s=timeout_s,
+                       log=log)
+        if len(front) < n_frames:
+            return self.record(variant, setting, out, None, {"band": [lo_b, hi_b]})
+        r = (front[-1] - self.L0) / self.L0
+        mid = 0.5 * (lo_b + hi_b)
+        return self.record(variant, setting, out, rel(r, mid), {
+            "aspect_ratio": a, "runout": r, "band_lo": lo_b, "band_hi": hi_b, "in_band": bool(lo_b <= r <= hi_b),
+            "final_speed_over_sqrt_gH": vmax[-1] / math.sqrt(G * H), "domain_m": L},
+            {"t": ts, "runout": [(f - self.L0) / self.L0 for f in front]})
+
+
+# ============================================================================ dam break
+# Martin & Moyce 1952 (Phil. Trans. R. Soc. A 244, 312-324), n^2 = 2 (column height 2a): surge
+# front Z = x / a against T = t sqrt(2 g / a); digitised values as used by the Lethe project's
+# dam-break example (chaos-polymtl/lethe, examples/multiphysics/dam-break).
+MM_T = (0.41, 0.84, 1.19, 1.43, 1.63, 1.82, 1.97, 2.2, 2.32, 2.5, 2.64, 2.82, 2.96)
+MM_Z = (1.11, 1.23, 1.44, 1.67, 1.89, 2.11, 2.33, 2.56, 2.78, 3.0, 3.22, 3.44, 3.67)
+GATE_SHIFT = 0.175  # dimensionless gate-removal delay the Lethe benchmark adds to simulated time
+
+
+class DamBreak(Case):
+    name = "dam_break"
+    title = "Dam break: surge front against Martin & Moyce (1952)"
+    reference = ("Collapse of a water column of width a and height 2a (n^2 = 2) on a horizontal floor: surge front "
+                 "Z = x / a at T = t sqrt(2 g / a) = 0.41, 0.84, 1.19, 1.43, 1.63, 1.82, 1.97, 2.2, 2.32, 2.5, 2.64, "
+                 "2.82, 2.96 is 1.11, 1.23, 1.44, 1.67, 1.89, 2.11, 2.33, 2.56, 2.78, 3.0, 3.22, 3.44, 3.67 (Martin & "
+                 "Moyce 1952, Phil. Trans. R. Soc. A 244, 312-324, digitised as in the Lethe project's dam-break "
+                 "example).  Water preset (fluid, E = 1e5 Pa, nu = 0.3, 1000 kg/m^3), a = 0.1 m, frictionless "
+                 "floor, plane strain.  The error is raw (no shift); the gate-removal shift +0.175 in T that CFD "
+                 "benchmarks add is reported separately.")
+    notes = ("Where the front is measured matters: the farthest single particle runs ahead in a film one "
+             "particle thin (no surface tension holds it back), so measured that way the front is ahead of the "
+             "experiment and more so at finer grids; the surge tip (first point at least one particle layer thick) "
+             "is what Martin & Moyce photographed.  At n_grid 16 the column is 1.4 cells wide and the front barely "
+             "resolved; with refinement the front goes from behind the data to a few percent ahead, the lead "
+             "that the gate-removal delay of the experiment explains (CFD benchmarks shift simulated time by +0.175)")
+    error_doc = ("mean |Z - Z_MM| / Z_MM over the thirteen data points (raw time); Z is the farthest point where "
+                 "the water is at least one particle layer thick (the surge tip; the farthest single particle, which "
+                 "runs ahead in a film a particle thin, is reported as mean_signed_dev_farthest_particle)")
+    grids = {"smoke": (16,), "cpu": (16, 24, 32, 48, 64), "full": (32, 64, 96, 128)}
+    a = 0.1
+
+    has_physics_plot = True
+
+    def physics_plot(self, ax, records):
+        ax.plot(MM_T, MM_Z, "ks", label="Martin & Moyce 1952 (n^2 = 2)")
+        lad = sorted((r for r in records if r["setting"].endswith("-p8-c0.5") and r.get("series")),
+                     key=lambda r: Setting.parse(r["setting"]))
+        for r in lad:
+            ax.plot(r["series"]["T"], r["series"]["Z"], "-", label=r["setting"])
+        ax.set_xlim(0, 3.2)
+        ax.set_ylim(0.9, 4.2)
+        ax.set_xlabel("T = t sqrt(2 g / a)")
+        ax.set_ylabel("surge front Z = x / a")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+
+    def run_variant(self, variant, setting, *, backend, timeout_s, log):
+        a = self.a
+        L = domain_for(4.4 * a, setting.n_grid)
+        dx = L / setting.n_grid
+        slab = SLAB_CELLS * dx
+        dyn, o = channel(L, dx, floor=("slip", 0.0), slab=slab)
+        m = preset("water")
+        lo = np.array([o["x0"], o["y0"], o["z0"]])
+        sc = Scene.block(m, lo, lo + (a, slab, 2 * a), setting, L, dyn)
+        h = dx / setting.per_axis
+        layer = SLAB_CELLS * setting.per_axis
+        scale = math.sqrt(2 * G / a)
+        fps = 200.0
+        n_frames = int(math.ceil(3.05 / scale * fps)) + 1
+        T, Z, Zmax = [], [], []
+
+        def on_frame(k, t, st):
+            T.append(t * scale)
+            Z.append((front_position(st["x"], 0, h, layer, o["x0"]) - o["x0"]) / a)
+            Zmax.append((float(st["x"][:, 0].max()) + h / 2 - o["x0"]) / a)  # the farthest particle
+
+        out = simulate(sc, setting, fps=fps, n_frames=n_frames, on_frame=on_frame, backend=backend, timeout_s=timeout_s,
+                       log=log)
+        if len(T) < n_frames:
+            return self.record(variant, setting, out, None, {})
+        Zs = np.interp(MM_T, T, Z)
+        dev = np.abs(Zs - MM_Z) / np.array(MM_Z)
+        Zg = np.interp(MM_T, np.array(T) + GATE_SHIFT, Z)
+        dev_g = np.abs(Zg - MM_Z) / np.array(MM_Z)
+        Zm = np.interp(MM_T, T, Zmax)
+        return self.record(variant, setting, out, float(dev.mean()), {
+            "max_rel_dev": float(dev.max()), "mean_signed_dev": float(np.mean((Zs - MM_Z) / np.array(MM_Z))),
+            "mean_rel_dev_gate_shift": float(dev_g.mean()), "max_rel_dev_gate_shift": float(dev_g.max()),
+            "mean_signed_dev_farthest_particle": float(np.mean((Zm - MM_Z) / np.array(MM_Z)))},
+            {"T": T, "Z": Z, "Z_farthest": Zmax})
+
+
+CASES: dict[str, Case] = {c.name: c for c in (FreeFall(), AxialVibration(), RigidRotation(), Incline(), SelfWeight(),
+                                               ColumnCollapse(), DamBreak())}
