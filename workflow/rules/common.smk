@@ -209,3 +209,25 @@ def stop_worker():
 
     if W.shutdown():
         print("physgs: stopped the warm stage worker", file=sys.stderr)
+
+
+# ---------------------------------------------------------------- validation (validation.smk)
+# VAL (config["validation"]) is defined at the top of validation.smk.
+
+def val_request(stage):
+    """mem_mb and runtime (minutes) of a validation job (config section `resources`)."""
+    from physgs_steps import resources
+
+    return resources.request(config["resources"], stage)
+
+
+def val_cfg(keys, **extra):
+    """The config a job reads (only these keys: a change elsewhere in `validation` re-runs nothing)."""
+    sub = {k: VAL[k] for k in keys}
+    return lambda w: {"validation": sub, "device": DEVICE, **{k: getattr(w, v) for k, v in extra.items()}}
+
+
+def val_before(w):
+    """The optional `validation.before` snapshot as a named input (absent when null)."""
+    b = VAL.get("before")  # --config gives null as a string
+    return {"before": str(C.resolve_path(b))} if b and str(b).lower() not in ("null", "none") else {}

@@ -16,19 +16,6 @@ wildcard_constraints:
     vpair=r"[a-z_]+__[a-z_]+",
 
 
-def val_request(stage):
-    """mem_mb and runtime (minutes) of a validation job (config section `resources`)."""
-    from physgs_steps import resources
-
-    return resources.request(config["resources"], stage)
-
-
-def val_cfg(keys, **extra):
-    """The config a job reads (only these keys: a change elsewhere in `validation` re-runs nothing)."""
-    sub = {k: VAL[k] for k in keys}
-    return lambda w: {"validation": sub, "device": DEVICE, **{k: getattr(w, v) for k, v in extra.items()}}
-
-
 rule validation:
     input:
         "results/validation/REPORT.md",
@@ -66,11 +53,6 @@ rule validation_sweep:
         gpu=gpu_count("validation_sweep"),
     script:
         "../scripts/validation_sweep.py"
-
-
-def val_before(w):
-    b = VAL.get("before")  # --config gives null as a string
-    return {"before": str(C.resolve_path(b))} if b and str(b).lower() not in ("null", "none") else {}
 
 
 rule validation_report:
