@@ -16,6 +16,7 @@ Units: metres, seconds, SI material parameters; the solver's domain units are co
 """
 from __future__ import annotations
 
+import abc
 import logging
 import math
 import time
@@ -261,7 +262,7 @@ def sine_fit(t: np.ndarray, y: np.ndarray, f_guess: float) -> tuple[float, float
 
 
 # ============================================================================ cases
-class Case:
+class Case(abc.ABC):
     """One physical test: set-up, reference, error measure.
 
     Subclasses set ``name``, ``title``, ``reference`` (Markdown: the relation or data used and
@@ -294,9 +295,10 @@ class Case:
             raise ConfigError("validation variant", f"case {self.name} has variants {', '.join(self.variants)}, got {variant!r}")
         return self.run_variant(variant, setting, backend=backend, timeout_s=timeout_s, log=log)
 
+    @abc.abstractmethod
     def run_variant(self, variant: str, setting: Setting, *, backend: str, timeout_s: float | None,
-                    log: logging.Logger) -> RunRecord:  # pragma: no cover - abstract
-        raise NotImplementedError
+                    log: logging.Logger) -> RunRecord:
+        """One run of ``variant`` at ``setting`` (the case's own set-up and error measure)."""
 
     def record(self, variant: str, setting: Setting, out: SimOutput, error: float | None, metrics: dict,
                series: dict | None = None) -> RunRecord:
@@ -306,10 +308,12 @@ class Case:
                          metrics, series or {}, out.message)
 
     notes = ""  # Markdown: what the measurements of this case show and why (report)
-    has_physics_plot = False  # whether physics_plot draws the measured quantity against its reference
+    # optional: a method (ax, records) drawing the measured quantity against its reference
+    physics_plot: Callable | None = None
 
-    def physics_plot(self, ax, records: Sequence[dict]) -> None:  # pragma: no cover - optional
-        raise NotImplementedError
+    @property
+    def has_physics_plot(self) -> bool:
+        return self.physics_plot is not None
 
     def combine(self, records: Sequence[RunRecord]) -> float | None:
         """The case's error at one setting from its variants' records (None if any failed)."""

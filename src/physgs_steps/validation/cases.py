@@ -324,7 +324,6 @@ class ColumnCollapse(Case):
     L0 = 0.1
     friction_angle = 30.0
 
-    has_physics_plot = True
 
     def physics_plot(self, ax, records):
         a = np.linspace(0.3, 3.3, 61)
@@ -412,7 +411,6 @@ class DamBreak(Case):
     grids = {"smoke": (16,), "cpu": (16, 24, 32, 48, 64), "full": (32, 64, 96, 128)}
     a = 0.1
 
-    has_physics_plot = True
 
     def physics_plot(self, ax, records):
         ax.plot(MM_T, MM_Z, "ks", label="Martin & Moyce 1952 (n^2 = 2)")
