@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .. import materials_kb
-from ..mpm.colliders import FRONT_BAND, GHOST_BAND, TOUCH
+from ..mpm.colliders import COVER, FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
 
 # ----------------------------------------------------------------------------- model names
 ELASTICITY = materials_kb.ELASTICITY_MODELS  # canonical names, docs/CONTRACTS.md
@@ -432,7 +432,7 @@ def plastic_projection(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, tab
     return out
 
 
-def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=None):
+def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=None, body=None, cover=None):
     """One MLS-MPM/APIC substep after the stress (CONTRACTS.md steps 1-4, without plasticity).
 
     All in SI: x  # [P, 3] m, v  # [P, 3] m/s at the state's time, C  # [P, 3, 3] 1/s,
@@ -442,6 +442,9 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     half-step velocity plus dt/2 g (the velocity at the new state's time).
     rigid  # [P] bool or None: these particles read the grid velocity before the wall
     conditions and are not projected onto the walls (rigid bodies meet boundaries as bodies).
+    body  # [P] long: the rigid body of each row (-1: deformable), cover  # [B] kg: each body's
+    covering node mass; with them the grid nodes the bodies cover move with them
+    (:func:`_rigid_grid`, the Taichi solver's coupling) and rigid rows read their body's field.
     returns x, v, C, F_trial (each like the input)
     """
     P = x.shape[0]
@@ -470,6 +473,9 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     has_mass = grid_m > 0
     gv = grid_mv / torch.where(has_mass, grid_m, torch.ones_like(grid_m))[:, None]
     gv = torch.where(has_mass[:, None], gv + dt * g, torch.zeros_like(gv))
+    field = None
+    if body is not None and bool((body >= 0).any()):
+        gv, field = _rigid_grid(gv, grid_m, uniq, inv.reshape(P, 27), weight, mom, p_mass, body, cover, G, dx, dt, g)
     # a wall acts on the nodes of (deformable) particles that touch it (colliders.py)
     phi_p = torch.stack([sgn * (x[:, a] - pos) for a, sgn, pos in _wall_planes(G, dx, grid)], -1).min(-1).values
     touch = phi_p < TOUCH * dx
@@ -481,7 +487,7 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     gv_b = _walls(gv, grid_m, uniq, G, dx, grid, engaged)
     gvp = gv_b[inv].reshape(P, 27, 3)
     if rigid is not None and bool(rigid.any()):
-        gvp = torch.where(rigid[:, None, None], gv[inv].reshape(P, 27, 3), gvp)
+        gvp = torch.where(rigid[:, None, None], (gv if field is None else field)[inv].reshape(P, 27, 3), gvp)
     new_v = (weight[..., None] * gvp).sum(1)
     new_C = 4.0 * inv_dx * inv_dx * torch.einsum("pk,pki,pkj->pij", weight, gvp, dpos)
     new_x = x + dt * new_v
@@ -489,6 +495,50 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     I = _eye(P, F)
     F_trial = (I + dt * new_C) @ F
     return new_x, new_v + 0.5 * dt * g, new_C, F_trial
+
+
+def _rigid_grid(gv, grid_m, uniq, inv, weight, mom, p_mass, body, cover, G: int, dx: float, dt: float, g):
+    """The rigid bodies' grid projection of the Taichi solver (kernels.py, rigid.py "Coupling").
+
+    gv  # [M, 3] node velocities (gravity applied), grid_m  # [M], uniq  # [M] node keys,
+    inv  # [P, 27] node of each stencil entry, weight  # [P, 27], mom  # [P, 27, 3] the momenta
+    transferred, body  # [P] long (-1: deformable), cover  # [B] kg.
+    returns gv  # [M, 3] (covered nodes: the body's field; fringe nodes: the soft material's
+    own velocity) and field  # [M, 3] (the owning body's field; gv elsewhere)."""
+    r = body >= 0
+    idx = inv[r].reshape(-1)
+    M = gv.shape[0]
+    own = torch.zeros(M, dtype=torch.long, device=gv.device)
+    own = own.scatter_reduce(0, idx, (body[r] + 1)[:, None].expand(-1, 27).reshape(-1), reduce="amax")
+    rm = gv.new_zeros(M).index_add(0, idx, (weight[r] * p_mass[r, None]).reshape(-1))
+    rmom = gv.new_zeros((M, 3)).index_add(0, idx, (weight[r][..., None] * mom[r]).reshape(-1, 3))
+    rv = torch.where((rm > 0)[:, None], rmom / torch.where(rm > 0, rm, torch.ones_like(rm))[:, None] + dt * g,
+                     torch.zeros_like(rmom))
+    covered = (own > 0) & (rm >= cover[(own - 1).clamp(min=0)])
+    xn = torch.stack([uniq // (G * G), (uniq // G) % G, uniq % G], -1).to(gv.dtype) * dx  # [M, 3]
+    m_n = torch.where(covered, grid_m, rm)
+    v_n = torch.where(covered[:, None], gv, rv)
+    field = gv.clone()
+    for b in range(int(cover.shape[0])):
+        sel = own == b + 1
+        if not bool(sel.any()):
+            continue
+        m, xb, vb = m_n[sel], xn[sel], v_n[sel]
+        Mb = m.sum()
+        c0 = (m[:, None] * xb).sum(0) / Mb
+        rr = xb - c0
+        Pb = (m[:, None] * vb).sum(0)
+        Lc = (m[:, None] * torch.cross(rr, vb, dim=-1)).sum(0)
+        eye = torch.eye(3, dtype=gv.dtype, device=gv.device)
+        Ic = (m[:, None, None] * ((rr * rr).sum(-1)[:, None, None] * eye - rr[:, :, None] * rr[:, None, :])).sum(0)
+        w = torch.linalg.solve(Ic, Lc)
+        rel = xn - c0
+        field = torch.where(sel[:, None], Pb / Mb + torch.cross(w.expand_as(rel), rel, dim=-1), field)
+    soft = grid_m - rm
+    own_soft = (grid_m[:, None] * gv - rm[:, None] * rv) / torch.where(soft > 0, soft, torch.ones_like(soft))[:, None]
+    fringe_v = torch.where((soft > FRINGE_SOFT * grid_m)[:, None], own_soft, field)
+    gv = torch.where(covered[:, None], field, torch.where((own > 0)[:, None], fringe_v, gv))
+    return gv, field
 
 
 def _wall_planes(G: int, dx: float, grid: GridSpec):
@@ -647,7 +697,14 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
     bodies = [k for k in range(table.n_instances) if table.is_rigid(k)]
     rigid = torch.isin(table.label, torch.as_tensor(bodies, dtype=table.label.dtype, device=F.device)) if bodies else None
     x0 = state["x"] * L
-    x, v, C, F_trial = mpm_step(x0, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid, rigid)
+    body = cover = None
+    if bodies:
+        body = torch.full_like(table.label, -1)
+        for b, k in enumerate(bodies):
+            body = torch.where(table.label == k, torch.full_like(body, b), body)
+        dx = L / grid.n_grid
+        cover = torch.stack([COVER * table.density[k] * dx ** 3 for k in bodies]).to(F.dtype)
+    x, v, C, F_trial = mpm_step(x0, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid, rigid, body, cover)
     F_new = plastic_projection(F_trial, mu, lam, table)
     idx = _fracturing(table, F.device)
     if idx.numel():

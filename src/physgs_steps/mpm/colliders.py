@@ -88,6 +88,8 @@ FINE = 4             # level sets: voxels per grid cell of the fine occupancy gr
 MAX_FINE_VOXELS = 40_000_000
 OCC_RADIUS = 1.25    # union-of-balls radius in point spacings
 FAR = 1.0e3          # phi (m) of nodes far from every static geometry
+COVER = 1.0 / 6.0    # rigid bodies: a node is covered where the body's mass there is this fraction of a node's inside it
+FRINGE_SOFT = 1e-4   # rigid bodies: a fringe node with less soft mass than this fraction moves with the body
 
 
 @dataclass

@@ -43,7 +43,7 @@ import taichi as ti
 
 from . import materials as M
 
-from .colliders import FRONT_BAND, GHOST_BAND, TOUCH
+from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
 
 vec3 = ti.types.vector(3, ti.f32)
 mat3 = ti.types.matrix(3, 3, ti.f32)
@@ -56,6 +56,10 @@ V3 = ti.types.ndarray(dtype=vec3, ndim=3)
 V4 = ti.types.ndarray(dtype=vec3, ndim=4)
 S3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
 I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+I4 = ti.types.ndarray(dtype=ti.i32, ndim=4)
+D2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+D3 = ti.types.ndarray(dtype=ti.f64, ndim=3)
+N_GSUM = 16  # per body on the grid: m, m x (3), m v (3), m x × v (3), m x x^T (6)
 S4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 
 
@@ -312,6 +316,15 @@ def build(spec: Spec) -> SimpleNamespace:
         return base, fx, w
 
     @ti.func
+    def _body_field(b, I, dx, gbody: ti.template()):
+        """The grid velocity field of rigid body b at node I: V + omega x (x_I - c) (f32)."""
+        c0 = ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
+        V = ti.Vector([gbody[b, 3], gbody[b, 4], gbody[b, 5]], dt=ti.f64)
+        w = ti.Vector([gbody[b, 6], gbody[b, 7], gbody[b, 8]], dt=ti.f64)
+        xn = ti.cast(I, ti.f64) * ti.cast(dx, ti.f64)
+        return ti.cast(V + w.cross(xn - c0), ti.f32)
+
+    @ti.func
     def _is_rigid(m, mcombo: ti.template()):
         r = 0
         if ti.static(rigid_cid >= 0):
@@ -369,11 +382,15 @@ def build(spec: Spec) -> SimpleNamespace:
     def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
                       p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
                       act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
-                      dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template(),
-                      err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
+                      grid_r: ti.template(), grid_rm: ti.template(), grid_rv: ti.template(), mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(),
+                      lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
         xp = x[p]
         held = 0
         rigid = _is_rigid(mat[p], mcombo)
+        owner = 0  # 1 + the rigid body this particle belongs to (0: deformable)
+        if ti.static(rigid_cid >= 0):
+            if rigid == 1:
+                owner = mbody[mat[p]] + 1
         if ti.static(n_cub > 0):
             if rigid == 0:
                 held, _ = _held(xp, t, dyn)
@@ -403,12 +420,27 @@ def build(spec: Spec) -> SimpleNamespace:
                 grid_m[0, node[0], node[1], node[2]] += weight * mass
             if touch == 1:
                 grid_c[c, node[0], node[1], node[2]] = 1.0
+            if ti.static(rigid_cid >= 0):
+                if owner > 0:  # the body's mass at the node (the highest index owns it where bodies meet)
+                    if ti.static(private_grid):
+                        grid_r[c, node[0], node[1], node[2]] = ti.max(grid_r[c, node[0], node[1], node[2]], owner)
+                        grid_rm[c, node[0], node[1], node[2]] = grid_rm[c, node[0], node[1], node[2]] + weight * mass
+                        grid_rv[c, node[0], node[1], node[2]] = grid_rv[c, node[0], node[1], node[2]] + weight * (mv + affine @ dpos)
+                    else:
+                        ti.atomic_max(grid_r[0, node[0], node[1], node[2]], owner)
+                        grid_rm[0, node[0], node[1], node[2]] += weight * mass
+                        grid_rv[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
 
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
-                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3,
-                lvl_rows: S2, err: I1, dt: ti.f32, t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32,
-                gz: ti.f32, damp: ti.f32):
+                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
+                mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, dt: ti.f32,
+                t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32):
+        # the rigid bodies' grid projection (1-element when no instance is rigid): grid_r
+        # [T,G,G,G] i32 owner (1 + body; + covered, - fringe), grid_rm [T,G,G,G] and grid_rv
+        # [T,G,G,G] vec3 the rigid particles' mass and momentum (then velocity), mbody [K] i32
+        # body of each material (-1: none), gpart [G, B, N_GSUM] f64 per-slab sums, gbody
+        # [B, 10] f64 per body: centre, V, omega of its grid field, covering mass (input)
         inv_dx = 1.0 / dx
         n_chunks = grid_m.shape[0]
         G = grid_m.shape[1]
@@ -418,16 +450,20 @@ def build(spec: Spec) -> SimpleNamespace:
             grid_v[I] = ti.Vector.zero(ti.f32, 3)
             grid_m[I] = 0.0
             grid_c[I] = 0.0
+            if ti.static(rigid_cid >= 0):
+                grid_r[I] = 0
+                grid_rm[I] = 0.0
+                grid_rv[I] = ti.Vector.zero(ti.f32, 3)
         # P2G
         if ti.static(private_grid):
             for c in range(n_chunks):  # parallel over chunks, serial inside a chunk
                 for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
                     _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
-                                  dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+                                  grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
         else:
             for p in range(P):
-                _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c, dyn,
-                              lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+                _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                              grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
         # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
         for i, j, k in ti.ndrange(G, G, G):
             m = grid_m[0, i, j, k]
@@ -439,6 +475,23 @@ def build(spec: Spec) -> SimpleNamespace:
                     mom += grid_v[c, i, j, k]
                     touch += grid_c[c, i, j, k]
             grid_c[0, i, j, k] = touch
+            if ti.static(rigid_cid >= 0):
+                owner = grid_r[0, i, j, k]
+                rm = grid_rm[0, i, j, k]
+                rmom = grid_rv[0, i, j, k]
+                if ti.static(private_grid):
+                    for c in range(1, n_chunks):
+                        owner = ti.max(owner, grid_r[c, i, j, k])
+                        rm += grid_rm[c, i, j, k]
+                        rmom += grid_rv[c, i, j, k]
+                rv = ti.Vector.zero(ti.f32, 3)
+                if rm > 0.0:
+                    rv = rmom / rm + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
+                    if ti.static(damping):
+                        rv *= damp
+                grid_r[0, i, j, k] = owner
+                grid_rm[0, i, j, k] = rm
+                grid_rv[0, i, j, k] = rv
             gv = ti.Vector.zero(ti.f32, 3)
             if m > 0.0:
                 gv = mom / m + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
@@ -446,6 +499,76 @@ def build(spec: Spec) -> SimpleNamespace:
                     gv *= damp
             grid_m[0, i, j, k] = m
             grid_v[0, i, j, k] = gv
+        if ti.static(rigid_cid >= 0):
+            # rigid bodies as moving colliders (rigid.py "Coupling"): a node where a body's
+            # particles transfer is covered by it where the rigid mass there is at least gbody[b, 9]
+            # (half that of a node inside it: the nodes inside its surface), else in its fringe.
+            # The body takes the whole momentum and angular momentum of the nodes it covers (its
+            # own, the soft material's there, the stress impulses) and of the rigid mass in its
+            # fringe; covered nodes then move with its rigid motion, fringe nodes keep the soft
+            # material's own velocity (the rigid particles read the body's field there)
+            B = gbody.shape[0]
+            for i, j, k in ti.ndrange(G, G, G):
+                o = grid_r[0, i, j, k]
+                if o > 0:
+                    if grid_rm[0, i, j, k] < gbody[o - 1, 9]:
+                        grid_r[0, i, j, k] = -o
+            for i in range(G):  # per x slab (fixed summation order: reproducible)
+                for b in range(B):
+                    for q in ti.static(range(N_GSUM)):
+                        gpart[i, b, q] = 0.0
+                for j, k in ti.ndrange(G, G):
+                    o = grid_r[0, i, j, k]
+                    m = ti.cast(grid_m[0, i, j, k], ti.f64)
+                    vn = ti.cast(grid_v[0, i, j, k], ti.f64)
+                    if o < 0:
+                        m = ti.cast(grid_rm[0, i, j, k], ti.f64)
+                        vn = ti.cast(grid_rv[0, i, j, k], ti.f64)
+                    if o != 0 and m > 0.0:
+                        b = ti.abs(o) - 1
+                        xn = ti.Vector([i, j, k], dt=ti.f64) * ti.cast(dx, ti.f64)
+                        xv = xn.cross(vn)
+                        row = [m, m * xn[0], m * xn[1], m * xn[2], m * vn[0], m * vn[1], m * vn[2], m * xv[0],
+                               m * xv[1], m * xv[2], m * xn[0] * xn[0], m * xn[1] * xn[1], m * xn[2] * xn[2],
+                               m * xn[0] * xn[1], m * xn[0] * xn[2], m * xn[1] * xn[2]]
+                        for q in ti.static(range(N_GSUM)):
+                            gpart[i, b, q] += row[q]
+            ti.loop_config(serialize=True)
+            for b in range(B):
+                acc = ti.Vector.zero(ti.f64, N_GSUM)
+                for i in range(G):
+                    for q in ti.static(range(N_GSUM)):
+                        acc[q] += gpart[i, b, q]
+                c0 = ti.Vector.zero(ti.f64, 3)
+                V = ti.Vector.zero(ti.f64, 3)
+                w = ti.Vector.zero(ti.f64, 3)
+                if acc[0] > 0.0:
+                    Mb = acc[0]
+                    c0 = ti.Vector([acc[1], acc[2], acc[3]], dt=ti.f64) / Mb
+                    Pb = ti.Vector([acc[4], acc[5], acc[6]], dt=ti.f64)
+                    V = Pb / Mb
+                    Lc = ti.Vector([acc[7], acc[8], acc[9]], dt=ti.f64) - c0.cross(Pb)  # about c0
+                    S = ti.Matrix([[acc[10], acc[13], acc[14]], [acc[13], acc[11], acc[15]],
+                                   [acc[14], acc[15], acc[12]]], dt=ti.f64) - Mb * c0.outer_product(c0)
+                    Ic = (S[0, 0] + S[1, 1] + S[2, 2]) * ti.Matrix.identity(ti.f64, 3) - S
+                    w = Ic.inverse() @ Lc
+                for q in ti.static(range(3)):
+                    gbody[b, q] = c0[q]
+                    gbody[b, 3 + q] = V[q]
+                    gbody[b, 6 + q] = w[q]
+            for i, j, k in ti.ndrange(G, G, G):
+                o = grid_r[0, i, j, k]
+                m = grid_m[0, i, j, k]
+                if o != 0 and m > 0.0:
+                    vb = _body_field(ti.abs(o) - 1, ti.Vector([i, j, k]), dx, gbody)
+                    if o > 0:
+                        grid_v[0, i, j, k] = vb
+                    else:  # fringe: the soft material's own momentum (none: the body's field)
+                        rm = grid_rm[0, i, j, k]
+                        out = vb
+                        if m - rm > FRINGE_SOFT * m:
+                            out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
+                        grid_v[0, i, j, k] = out
         # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
         for i, j, k in ti.ndrange(G, G, G):
             gv = grid_v[0, i, j, k]
@@ -485,8 +608,12 @@ def build(spec: Spec) -> SimpleNamespace:
                 node = base + offset
                 g_v = grid_b[node[0], node[1], node[2]]
                 if ti.static(rigid_cid >= 0):
-                    if rigid == 1:  # rigid bodies meet the boundaries as bodies (rigid.py)
-                        g_v = grid_v[0, node[0], node[1], node[2]]
+                    if rigid == 1:  # the field of the body owning the node (boundaries: rigid.py)
+                        o = grid_r[0, node[0], node[1], node[2]]
+                        if o != 0:
+                            g_v = _body_field(ti.abs(o) - 1, node, dx, gbody)
+                        else:
+                            g_v = grid_v[0, node[0], node[1], node[2]]
                 weight = w[i][0] * w[j][1] * w[k][2]
                 new_v += weight * g_v
                 new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)

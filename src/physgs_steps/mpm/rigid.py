@@ -1,14 +1,35 @@
 """Free rigid bodies coupled two-way to the MLS-MPM grid (issue #15; docs/CONTRACTS.md "MPM step").
 
-A rigid instance's particles take part in every transfer like any material (their mass and
-momentum go to the grid, so soft material feels them), carry no stress (elasticity model
-``rigid``: no elastic waves, so they do not limit the time step) and, after G2P, move as one
-body.  Per substep, after the MPM kernel:
+A rigid instance's particles take part in P2G like any material, carry no stress (elasticity
+model ``rigid``: no elastic waves, so they do not limit the time step) and, after G2P, move as
+one body.
+
+Coupling
+--------
+On the grid each body is a moving collider with full impulse exchange (kernels.py, after the
+grid velocities and before the boundaries; docs/CONTRACTS.md step 3).  A node where the body's
+particles transfer is *covered* where their mass there is at least ``COVER rho dx^3``
+(colliders.COVER = 1/6: the smoothed mass of a node half a cell outside a flat face), else in
+the body's *fringe*.  The body takes the whole momentum and angular momentum of its covered
+nodes (its own, the soft material's there and the stress impulses acting on them) and of its
+own mass in the fringe; the covered nodes then move with its rigid velocity field, so soft
+material that reaches them moves with the body instead of flowing into it, and the fringe
+nodes keep the soft material's own velocity (the rigid particles read the body's field
+there).  The grid's momentum and angular momentum are unchanged by this.  Before, rigid
+particles read the mass-averaged node velocity and were projected afterwards: the force that
+held a body up acted on the shared nodes' soft material as well, which then flowed into the
+body, and a steel ball on jelly sank at about 1 cm/s without end (benchmarks/bench_rigid.py).
+
+Where two bodies meet, a node belongs to the one with the higher index and the other's
+particles read its field there: they exchange momentum through those nodes, so a collision
+is perfectly inelastic, as between any two MPM materials.
+
+Per substep, after the MPM kernel:
 
 1. **reduce** each body b over its particles p (r_p = R_b r0_p, the offset from the centre of
    mass in the pose at the start of the substep; v_p, C_p from G2P, which for rigid particles
-   reads the grid velocity *before* the boundary conditions: contact with colliders is done
-   for the whole body in step 2):
+   reads the body field of the node's owner, not the boundary conditions: contact with
+   colliders is done for the whole body in step 2):
 
        M = sum m_p,   P = sum m_p v_p,   L = sum m_p r_p x v_p + m_p dx^2/4 axial(C_p)
 
@@ -36,9 +57,6 @@ body.  Per substep, after the MPM kernel:
    omega' = (R' I0^-1 R'^T) L: the angular momentum is kept in the new pose.
 4. **scatter**: x_p = c + R r0_p, v_p = V + omega' x r_p, C_p = [omega']x, F_p = R (tau = 0):
    the particle state carries exactly the body's momentum and angular momentum.
-
-Two rigid bodies touching exchange momentum through the grid nodes they share, as any two
-MPM materials do: the grid contact is sticky, so a collision is perfectly inelastic.
 
 Body state and sums are float64; on the CPU the reduction runs per chunk of particles (one per
 thread) in a fixed order, so runs stay bitwise reproducible.

@@ -181,6 +181,18 @@ class MPMSolver:
         free = [k for k, m in enumerate(self.materials) if m.rigid and not m.fixed and np.any(mat_sorted == k)]
         self._rigid_k = free
         self.rigid = None
+        mbody = np.full(len(self.materials), -1, np.int32)
+        mbody[free] = np.arange(len(free), dtype=np.int32)
+        self._mbody = _ndarray_from(mbody, ti.i32)
+        nb = max(len(free), 1)
+        G, T = self.n_grid, self.n_chunks
+        self.grid_r = ti.ndarray(ti.i32, (T, G, G, G) if free else (1, 1, 1, 1))
+        self._gpart = ti.ndarray(ti.f64, (G if free else 1, nb, K.N_GSUM))  # per x slab and body: grid sums
+        self.grid_rm = ti.ndarray(ti.f32, (T, G, G, G) if free else (1, 1, 1, 1))  # rigid mass per node
+        self.grid_rv = ti.ndarray(K.vec3, (T, G, G, G) if free else (1, 1, 1, 1))  # rigid momentum, velocity
+        gbody = np.zeros((nb, 10))  # per body: centre, V, omega of the covered nodes; covering mass
+        gbody[: len(free), 9] = [colliders.COVER * self.materials[k].density * self.dx ** 3 for k in free]
+        self._gbody = _ndarray_from(gbody, ti.f64)
         if free:
             bodies = [np.flatnonzero(mat_sorted == k) for k in free]
             self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, self.n_chunks, [self.materials[k].name for k in free])
@@ -236,6 +248,9 @@ class MPMSolver:
         self.grid_m = ti.ndarray(ti.f32, (T, G, G, G))
         self.grid_c = ti.ndarray(ti.f32, (T, G, G, G))  # 1 where a particle touching an obstacle transfers
         self.grid_b = ti.ndarray(K.vec3, (G, G, G))  # grid velocities after the boundary conditions
+        self.grid_r = ti.ndarray(ti.i32, (1, 1, 1, 1))  # rigid bodies: 1 + the body covering a node (_setup_rigid)
+        self.grid_rm = ti.ndarray(ti.f32, (1, 1, 1, 1))
+        self.grid_rv = ti.ndarray(K.vec3, (1, 1, 1, 1))
         self._err = ti.ndarray(ti.i32, 4)
         self._err.from_numpy(np.zeros(4, np.int32))
         self._stats = ti.ndarray(ti.f32, (len(self.materials), len(STAT_COLUMNS)))
@@ -379,7 +394,8 @@ class MPMSolver:
             self._stagger = dt
         damp = math.exp(-b.damping * dt) if b.damping > 0 else 1.0
         self._k.substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
-                        self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self._mparams, self._mcombo, self._dyn,
+                        self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_r, self.grid_rm, self.grid_rv, self._mbody,
+                        self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
                         self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, float(dt), float(self.time),
                         float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]),
                         float(b.gravity[2]), float(damp))
@@ -468,7 +484,8 @@ class MPMSolver:
         P, G = self.n_particles, self.n_grid
         per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1)
         backup = 4 * (3 + 3 + 9 + 9 + 9 + 1) * P if self._backup is not None else 0
-        return per_particle * P + 16 * self.n_chunks * G ** 3 + backup
+        owner = 20 * self.n_chunks * G ** 3 if self.rigid is not None else 0  # grid_r, grid_rm, grid_rv
+        return per_particle * P + 16 * self.n_chunks * G ** 3 + owner + backup
 
     # ------------------------------------------------------------------ helpers
     def wave_speeds(self) -> np.ndarray:
