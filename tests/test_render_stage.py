@@ -216,3 +216,14 @@ def test_final_frames_sheet_shows_each_videos_last_frame(tmp_path):
     assert left[0] > 200 and left[2] < 60 and right[2] > 200 and right[0] < 60  # last frames, in order
     with pytest.raises(RenderError, match="one label per video"):
         final_frames_sheet(paths, ["main"], tmp_path / "t.png")
+
+
+def test_frames_per_call_bounds_gpu_memory():
+    """gsplat's frames per call: render.batch at most, render.batch_gaussians gaussian-frames at most."""
+    from physgs_steps.render.stage import frames_per_call
+
+    assert frames_per_call(16, 2_000_000, 20_000, 8_388_608, 512 * 512) == 16
+    assert frames_per_call(16, 2_000_000, 300_000, 8_388_608, 512 * 512) == 6
+    assert frames_per_call(16, 2_000_000, 300_000, 8_388_608, 1920 * 1080) == 4
+    assert frames_per_call(16, 2_000_000, 1_000_000, 8_388_608, 512 * 512) == 2
+    assert frames_per_call(16, 2_000_000, 10_000_000) == 1
