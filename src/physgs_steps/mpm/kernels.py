@@ -42,6 +42,7 @@ from typing import NamedTuple
 import taichi as ti
 
 from . import materials as M
+from . import p2g_sorted as P2G
 
 BOUND = 3  # domain wall thickness in grid nodes (CONTRACTS.md)
 
@@ -70,6 +71,8 @@ class Spec(NamedTuple):
     damping: bool        # whether grid damping is applied
     counts: tuple        # (surface, cuboid, acceleration, translation, rotation) dynamics rows
     private_grid: bool   # CPU: one grid per chunk of particles, no atomics; CUDA: one grid, atomics
+    p2g: str = "atomic"  # atomic: one add per particle and node; coarsened: one per run of equal bases (p2g_sorted.py)
+    run: int = P2G.RUN_LENGTH  # coarsened, one grid: particles per thread
 
 
 @functools.lru_cache(maxsize=None)
@@ -87,6 +90,9 @@ def build(spec: Spec) -> SimpleNamespace:
     sticky = spec.boundary == "sticky"
     damping = spec.damping
     private_grid = spec.private_grid
+    coarsened = spec.p2g == "coarsened"
+    run = spec.run
+    flush = P2G.make_flush(private_grid)
     two_pi = 2.0 * math.pi
 
     @ti.func
@@ -151,9 +157,11 @@ def build(spec: Spec) -> SimpleNamespace:
         return gv
 
     @ti.func
-    def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
-                      p_vol: ti.template(), p_mass: ti.template(), act_bits: ti.template(), grid_v: ti.template(),
-                      grid_m: ti.template(), dyn: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G):
+    def _p2g_prepare(p, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                     p_vol: ti.template(), p_mass: ti.template(), act_bits: ti.template(), dyn: ti.template(),
+                     err: ti.template(), dt, t, dx, inv_dx, G):
+        """Particle p's stencil (base, fx, w) and what it transfers: momentum mv, APIC affine
+        matrix (stress and C terms), mass."""
         xp = x[p]
         base, fx, w = _stencil(xp, inv_dx, G, err)
         vp = v[p]
@@ -164,6 +172,14 @@ def build(spec: Spec) -> SimpleNamespace:
         mass = p_mass[p]
         affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
         mv = mass * vp
+        return base, fx, w, mv, affine, mass
+
+    @ti.func
+    def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                      p_vol: ti.template(), p_mass: ti.template(), act_bits: ti.template(), grid_v: ti.template(),
+                      grid_m: ti.template(), dyn: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G):
+        base, fx, w, mv, affine, mass = _p2g_prepare(p, x, v, C, tau, p_vol, p_mass, act_bits, dyn, err,
+                                                     dt, t, dx, inv_dx, G)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, ti.f32) - fx) * dx
@@ -177,6 +193,31 @@ def build(spec: Spec) -> SimpleNamespace:
                 grid_v[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
                 grid_m[0, node[0], node[1], node[2]] += weight * mass
 
+    @ti.func
+    def _p2g_runs(p0, p1, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                  p_vol: ti.template(), p_mass: ti.template(), act_bits: ti.template(), grid_v: ti.template(),
+                  grid_m: ti.template(), dyn: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G):
+        """Coarsened P2G of particles p0..p1-1 (p2g_sorted.py): sums in registers while the
+        stencil base stays the same, one write of the 27 nodes per run."""
+        acc = P2G.acc_zero()
+        cur = ti.Vector([-1, -1, -1])  # the run's base (none yet)
+        for p in range(p0, p1 + 1):  # p1: past the end, closes the last run (one flush site: less code)
+            base = ti.Vector([-2, -2, -2])
+            fx = ti.Vector.zero(ti.f32, 3)
+            mv = ti.Vector.zero(ti.f32, 3)
+            affine = ti.Matrix.zero(ti.f32, 3, 3)
+            mass = 0.0
+            if p < p1:
+                base, fx, _, mv, affine, mass = _p2g_prepare(p, x, v, C, tau, p_vol, p_mass, act_bits, dyn, err,
+                                                             dt, t, dx, inv_dx, G)
+            if not P2G.same_base(base, cur):
+                if cur[0] >= 0:
+                    flush(acc, cur, c, grid_v, grid_m)
+                    acc = P2G.acc_zero()
+                cur = base
+            if p < p1:
+                P2G.acc_add(acc, fx, dx, mv, affine, mass)
+
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
                 grid_v: V4, grid_m: S4, mparams: S2, mcombo: I1, dyn: S2, err: I1,
@@ -189,7 +230,15 @@ def build(spec: Spec) -> SimpleNamespace:
             grid_v[I] = ti.Vector.zero(ti.f32, 3)
             grid_m[I] = 0.0
         # P2G
-        if ti.static(private_grid):
+        if ti.static(coarsened and private_grid):
+            for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
+                _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_mass, act_bits,
+                          grid_v, grid_m, dyn, err, dt, t, dx, inv_dx, G)
+        elif ti.static(coarsened):
+            for r in range((P + run - 1) // run):  # one thread per `run` consecutive particles
+                _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_mass, act_bits,
+                          grid_v, grid_m, dyn, err, dt, t, dx, inv_dx, G)
+        elif ti.static(private_grid):
             for c in range(n_chunks):  # parallel over chunks, serial inside a chunk
                 for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
                     _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, act_bits, grid_v, grid_m, dyn, err,

@@ -42,6 +42,7 @@ import taichi as ti
 
 from ..errors import ConfigError, InputError
 from . import kernels as K
+from . import p2g_sorted as P2G
 from .backend import ensure_taichi
 from .dynamics import BoundDynamics, Dynamics
 from .materials import Material
@@ -66,11 +67,19 @@ class MPMSolver:
         grid_mode: how P2G accumulates: ``private`` (one grid per CPU thread's chunk of
             particles, plain adds, reproducible), ``atomic`` (one grid, float atomics), or
             ``auto`` (private on the CPU, atomic on CUDA).
+        p2g: how P2G writes the grid (p2g_sorted.py): ``atomic`` (every particle adds to its
+            27 nodes), ``coarsened`` (a thread sums a run of consecutive particles with the
+            same stencil base in registers and writes the nodes once per run; particles are
+            re-sorted on the device every ``resort_every`` substeps), or ``auto``
+            (p2g_sorted.AUTO per arch).  Results equal up to float summation order.
+        run_length: coarsened P2G on one grid (CUDA): particles per thread.
+        resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load).
     """
 
     def __init__(self, materials: Sequence[Material], *, n_grid: int = 32, domain_size: float = 1.0,
                  dynamics: Dynamics | None = None, backend: str = "cpu", labels: Sequence[int] | None = None,
-                 sort_particles: bool = True, grid_mode: str = "auto"):
+                 sort_particles: bool = True, grid_mode: str = "auto", p2g: str = "auto",
+                 run_length: int = P2G.RUN_LENGTH, resort_every: int = P2G.RESORT_EVERY):
         if not materials:
             raise ConfigError("materials", "at least one material is needed")
         if int(n_grid) < 8:
@@ -90,6 +99,14 @@ class MPMSolver:
             raise ConfigError("grid_mode", f"must be auto, private or atomic, got {grid_mode!r}")
         self.private_grid = grid_mode == "private" or (grid_mode == "auto" and self.arch == "cpu")
         self.n_chunks = max(1, min(os.cpu_count() or 1, MAX_CHUNKS)) if self.private_grid else 1
+        self.p2g = P2G.resolve(p2g, self.arch)
+        if int(run_length) < 1 or int(resort_every) < 0:
+            raise ConfigError("p2g", f"run_length must be >= 1 and resort_every >= 0, got {run_length}, {resort_every}")
+        self.run_length = int(run_length)
+        self.resort_every = int(resort_every)
+        self._sorter = None  # coarsened P2G: the device sort (p2g_sorted.DeviceSort)
+        self._since_sort = 0
+        self.sort_generation = 0  # counts device re-sorts (storage order changes)
         self.combos = tuple(sorted({m.kernel_key for m in self.materials}))
         self.time = 0.0
         self._stagger = 0.0  # dt the stored velocities are staggered with (v_{n-1/2} = v_n - dt/2 g)
@@ -128,10 +145,11 @@ class MPMSolver:
             velocity = self.dynamics.initial_velocities(x, material, base, names, self.labels)
         velocity = _as_array(velocity, np.float64, (P, 3), "velocity")
         self.bound = self.dynamics.bind(x, material, names, self.labels, self.L)
-        self._perm = self._sort_order(x) if self.sort_particles else np.arange(P)
+        perm = self._sort_order(x) if self.sort_particles else np.arange(P)
         self.n_particles = P
         self._allocate(P)
-        perm = self._perm
+        self._order.from_numpy(perm.astype(np.int32))
+        self._perm = perm
         self._mat.from_numpy(material[perm].astype(np.int32))
         self._act_bits.from_numpy(self.bound.act_bits[perm])
         p_vol = vol[perm] * self.L ** 3
@@ -139,13 +157,41 @@ class MPMSolver:
         self._p_vol.from_numpy(p_vol.astype(np.float32))
         self._p_mass.from_numpy((p_vol * density).astype(np.float32))
         self._dyn = _ndarray_from(self.bound.table, ti.f32)
-        spec = K.Spec(self.combos, *self.bound.spec(), self.private_grid)
+        spec = K.Spec(self.combos, *self.bound.spec(), self.private_grid, p2g=self.p2g, run=self.run_length)
         self._k = K.build(spec)
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
         self.set_state(x, velocity / self.L, np.zeros((P, 3, 3)), eye)
         if np.ptp(velocity, axis=0).max() > 0:  # a non-uniform field: C = its APIC velocity gradient
             self.init_affine()
         self.time = 0.0
+        self._sorter = None
+        if self.p2g == "coarsened" and self.sort_particles:
+            self._sorter = P2G.DeviceSort(P, self.n_grid, self.arch)
+            self.resort()
+
+    # ------------------------------------------------------------------ storage order
+    @property
+    def _perm(self) -> np.ndarray:
+        """[P] the caller's row of each storage slot (particles are stored sorted; a device
+        re-sort changes it: read back from ``_order`` when needed)."""
+        if self._perm_gen != self.sort_generation:
+            self._perm_np = self._order.to_numpy().astype(np.int64)
+            self._perm_gen = self.sort_generation
+        return self._perm_np
+
+    @_perm.setter
+    def _perm(self, value: np.ndarray) -> None:
+        self._perm_np = np.asarray(value, np.int64)
+        self._perm_gen = self.sort_generation
+
+    def resort(self) -> None:
+        """Re-sort the particles by stencil base node on the device (coarsened P2G; a no-op
+        otherwise).  Rows in ``get_state`` etc. stay in the caller's order."""
+        if self._sorter is None:
+            return
+        self._sorter.sort(self)
+        self.sort_generation += 1
+        self._since_sort = 0
 
     def init_affine(self, iterations: int = AFFINE_ITERATIONS) -> None:
         """Set every particle's C to the velocity gradient the APIC transfer reproduces for the
@@ -186,6 +232,7 @@ class MPMSolver:
         self._p_mass = ti.ndarray(ti.f32, P)
         self._mat = ti.ndarray(ti.i32, P)
         self._act_bits = ti.ndarray(ti.i32, P)
+        self._order = ti.ndarray(ti.i32, P)  # the caller's row of each storage slot
         T = self.n_chunks
         self.grid_v = ti.ndarray(K.vec3, (T, G, G, G))
         self.grid_m = ti.ndarray(ti.f32, (T, G, G, G))
@@ -305,6 +352,9 @@ class MPMSolver:
             K.add_velocity(self.v, float(shift[0]), float(shift[1]), float(shift[2]))
             self._stagger = dt
         damp = math.exp(-b.damping * dt) if b.damping > 0 else 1.0
+        if self._sorter is not None and self.resort_every > 0 and self._since_sort >= self.resort_every:
+            self.resort()
+        self._since_sort += 1
         self._k.substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
                         self._act_bits, self.grid_v, self.grid_m, self._mparams, self._mcombo, self._dyn,
                         self._err, float(dt), float(self.time), float(self.dx),
@@ -338,6 +388,7 @@ class MPMSolver:
         for name, arr in self._backup.items():
             arr.copy_from(getattr(self, name))
         self._backup_time = self.time
+        self._backup_order = (self.sort_generation, self._perm.copy())
         self._backup_stagger = self._stagger
 
     def restore_backup(self) -> None:
@@ -346,13 +397,33 @@ class MPMSolver:
             raise RuntimeError("no backup saved")
         for name, arr in self._backup.items():
             getattr(self, name).copy_from(arr)
+        self._restore_order(*self._backup_order)
         self.time = self._backup_time
         self._stagger = self._backup_stagger
+
+    def _restore_order(self, generation: int, perm: np.ndarray) -> None:
+        """After a backup's state arrays came back: if the particles were re-sorted since, put
+        the arrays the backup does not hold (mass, volume, material, action bits) into the
+        backup's storage order ``perm`` too."""
+        if generation == self.sort_generation:
+            return
+        slot = np.empty_like(self._perm)
+        slot[self._perm] = np.arange(len(slot))
+        src = slot[perm]  # current slot of each backup slot's particle
+        for name in ("_p_vol", "_p_mass", "_mat", "_act_bits"):
+            arr = getattr(self, name)
+            arr.from_numpy(arr.to_numpy()[src])
+        self._order.from_numpy(perm.astype(np.int32))
+        self.sort_generation += 1
+        self._perm = perm
+        self._since_sort = 0
 
     def gather_rows(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions [R, 3] (domain units) and F [R, 3, 3] of particle ``rows`` (input order)."""
         rows = np.asarray(rows, np.int64)
-        if not hasattr(self, "_gather_cache") or self._gather_cache[0] is not rows:
+        if not hasattr(self, "_gather_cache") or self._gather_cache[0] is not rows or \
+                self._gather_gen != self.sort_generation:
+            self._gather_gen = self.sort_generation
             inv_perm = np.empty_like(self._perm)
             inv_perm[self._perm] = np.arange(len(self._perm))
             idx = _ndarray_from(inv_perm[rows].astype(np.int64), ti.i64)
@@ -365,9 +436,10 @@ class MPMSolver:
     def device_bytes(self) -> int:
         """Bytes of the solver's arrays (particles, grid, tables, backup)."""
         P, G = self.n_particles, self.n_grid
-        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1)
+        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1 + 1)
         backup = 4 * (3 + 3 + 9 + 9 + 9 + 1) * P if self._backup is not None else 0
-        return per_particle * P + 16 * self.n_chunks * G ** 3 + backup
+        sort = self._sorter.nbytes() if self._sorter is not None else 0
+        return per_particle * P + 16 * self.n_chunks * G ** 3 + backup + sort
 
     # ------------------------------------------------------------------ helpers
     def wave_speeds(self) -> np.ndarray:
