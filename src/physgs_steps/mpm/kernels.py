@@ -72,7 +72,7 @@ class Spec(NamedTuple):
     counts: tuple        # (surface, cuboid, acceleration, translation, rotation) dynamics rows
     private_grid: bool   # CPU: one grid per chunk of particles, no atomics; CUDA: one grid, atomics
     p2g: str = "atomic"  # atomic: one add per particle and node; coarsened: one per run of equal bases (p2g_sorted.py)
-    run: int = P2G.RUN_LENGTH  # coarsened, one grid: particles per thread
+    run: int = 0         # coarsened P2G on one grid: particles per thread; P2G.CELL: per sorted cell; 0: unused
 
 
 @functools.lru_cache(maxsize=None)
@@ -221,7 +221,8 @@ def build(spec: Spec) -> SimpleNamespace:
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
                 grid_v: V4, grid_m: S4, mparams: S2, mcombo: I1, dyn: S2, err: I1,
-                dt: ti.f32, t: ti.f32, dx: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32):
+                dt: ti.f32, t: ti.f32, dx: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32,
+                cell_start: I1):
         inv_dx = 1.0 / dx
         n_chunks = grid_m.shape[0]
         G = grid_m.shape[1]
@@ -234,6 +235,13 @@ def build(spec: Spec) -> SimpleNamespace:
             for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
                 _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_mass, act_bits,
                           grid_v, grid_m, dyn, err, dt, t, dx, inv_dx, G)
+        elif ti.static(coarsened and run == P2G.CELL):
+            for k in range(cell_start.shape[0] - 1):  # one thread per cell of the last sort
+                p0 = cell_start[k]
+                p1 = cell_start[k + 1]
+                if p1 > p0:
+                    _p2g_runs(p0, p1, 0, x, v, C, tau, p_vol, p_mass, act_bits, grid_v, grid_m, dyn, err,
+                              dt, t, dx, inv_dx, G)
         elif ti.static(coarsened):
             for r in range((P + run - 1) // run):  # one thread per `run` consecutive particles
                 _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_mass, act_bits,

@@ -4,8 +4,9 @@ With float atomics (CUDA), P2G costs most of a substep: particles stored sorted 
 consecutive threads add into the same 27 grid nodes, and those atomics serialise.  The
 ``coarsened`` P2G mode removes most of them:
 
-* **Runs.**  A thread takes a range of consecutive particles (``run`` of them on CUDA, one
-  thread's chunk with private CPU grids).  While consecutive particles share a stencil base
+* **Runs.**  A thread takes a range of consecutive particles (``run`` of them on CUDA, or,
+  with ``run`` = :data:`CELL`, the slots of one stencil-base cell as the last sort left them;
+  one thread's chunk with private CPU grids).  While consecutive particles share a stencil base
   node (``floor(x / dx - 0.5)``, the node the 3x3x3 stencil starts at), their mass and
   momentum contributions are summed in registers (a 27 x 4 accumulator); the thread writes the
   27 nodes once per run of equal bases, instead of once per particle.  Any particle order gives
@@ -32,6 +33,7 @@ from ..errors import ConfigError
 P2G_MODES = ("auto", "atomic", "coarsened")
 AUTO = {"cpu": "atomic", "cuda": "coarsened"}  # what ``auto`` picks per arch
 RUN_LENGTH = 16  # CUDA: particles per thread in coarsened P2G
+CELL = -1  # run_length value: one thread per stencil-base cell of the last sort (its range of slots)
 RESORT_EVERY = 16  # substeps between device re-sorts in coarsened mode
 SCAN_BLOCK = 128  # entries each thread sums serially in the prefix sum
 
@@ -210,8 +212,8 @@ class DeviceSort:
         self.P, self.G = int(P), int(G)
         self.key = ti.ndarray(ti.i32, P)
         self.rank = ti.ndarray(ti.i32, P)
-        self.count = ti.ndarray(ti.i32, G ** 3)
-        self.scan = Scan(G ** 3)
+        self.count = ti.ndarray(ti.i32, G ** 3 + 1)  # counts, then the first slot of each cell (+ P at the end)
+        self.scan = Scan(G ** 3 + 1)
         self.keys = _key_kernel(arch == "cpu")  # serial on the CPU: a reproducible order
         self.spare = None
 
@@ -233,7 +235,7 @@ class DeviceSort:
             spare[n] = a
 
     def nbytes(self) -> int:
-        return 4 * (2 * self.P + self.G ** 3) + (4 * 39 * self.P if self.spare is not None else 0)
+        return 4 * (2 * self.P + self.G ** 3 + 1) + (4 * 39 * self.P if self.spare is not None else 0)
 
 
 def sorted_by_base(x: np.ndarray, dx: float, G: int) -> bool:

@@ -72,7 +72,8 @@ class MPMSolver:
             same stencil base in registers and writes the nodes once per run; particles are
             re-sorted on the device every ``resort_every`` substeps), or ``auto``
             (p2g_sorted.AUTO per arch).  Results equal up to float summation order.
-        run_length: coarsened P2G on one grid (CUDA): particles per thread.
+        run_length: coarsened P2G on one grid (CUDA): particles per thread, or ``"cell"``: one
+            thread per stencil-base cell of the last sort.
         resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load).
     """
 
@@ -100,9 +101,11 @@ class MPMSolver:
         self.private_grid = grid_mode == "private" or (grid_mode == "auto" and self.arch == "cpu")
         self.n_chunks = max(1, min(os.cpu_count() or 1, MAX_CHUNKS)) if self.private_grid else 1
         self.p2g = P2G.resolve(p2g, self.arch)
-        if int(run_length) < 1 or int(resort_every) < 0:
-            raise ConfigError("p2g", f"run_length must be >= 1 and resort_every >= 0, got {run_length}, {resort_every}")
-        self.run_length = int(run_length)
+        run_length = P2G.CELL if run_length == "cell" else run_length
+        if not isinstance(run_length, int) or (run_length < 1 and run_length != P2G.CELL) or int(resort_every) < 0:
+            raise ConfigError("p2g", f"run_length must be >= 1 or 'cell' and resort_every >= 0, got {run_length!r}, "
+                                     f"{resort_every!r}")
+        self.run_length = run_length
         self.resort_every = int(resort_every)
         self._sorter = None  # coarsened P2G: the device sort (p2g_sorted.DeviceSort)
         self._since_sort = 0
@@ -157,7 +160,8 @@ class MPMSolver:
         self._p_vol.from_numpy(p_vol.astype(np.float32))
         self._p_mass.from_numpy((p_vol * density).astype(np.float32))
         self._dyn = _ndarray_from(self.bound.table, ti.f32)
-        spec = K.Spec(self.combos, *self.bound.spec(), self.private_grid, p2g=self.p2g, run=self.run_length)
+        run = self.run_length if self.p2g == "coarsened" and not self.private_grid else 0  # else unused: one build
+        spec = K.Spec(self.combos, *self.bound.spec(), self.private_grid, p2g=self.p2g, run=run)
         self._k = K.build(spec)
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
         self.set_state(x, velocity / self.L, np.zeros((P, 3, 3)), eye)
@@ -165,8 +169,10 @@ class MPMSolver:
             self.init_affine()
         self.time = 0.0
         self._sorter = None
+        self._cell_start = _ndarray_from(np.array([0, P], np.int32), ti.i32)  # one range (unsorted: correct, slow)
         if self.p2g == "coarsened" and self.sort_particles:
             self._sorter = P2G.DeviceSort(P, self.n_grid, self.arch)
+            self._cell_start = self._sorter.count
             self.resort()
 
     # ------------------------------------------------------------------ storage order
@@ -358,7 +364,7 @@ class MPMSolver:
         self._k.substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
                         self._act_bits, self.grid_v, self.grid_m, self._mparams, self._mcombo, self._dyn,
                         self._err, float(dt), float(self.time), float(self.dx),
-                        float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]), float(damp))
+                        float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]), float(damp), self._cell_start)
         self.time += dt
 
     def stats(self) -> dict:
