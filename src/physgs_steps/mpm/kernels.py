@@ -29,6 +29,12 @@ then fixed, so CPU runs are bitwise reproducible.  On CUDA, T = 1 and P2G uses a
 A particle whose stencil would leave the grid (a blow-up) is clamped onto it and counted in
 err[0], so a failing run never reads or writes out of bounds.
 
+``Spec.p2g == "coarsened"`` (p2g_sorted.py): P2G sums runs of consecutive particles with the
+same stencil base in registers and writes the 27 nodes once per run (threads take ``Spec.run``
+particles each, or, with ``run`` = p2g_sorted.CELL, the slots of one cell of the last device
+sort, ``cell_start`` [G^3 + 1]; the CPU's private-grid chunks likewise).  ``cell_start`` is
+read only in that case.
+
 The stress of the current F is kept per particle (``tau``): the G2P pass computes it right
 after the return map from the SVD it already has, so a substep needs at most one SVD per
 particle; ``build_constitutive(...).stress`` recomputes it after ``F`` is set from outside.
