@@ -160,7 +160,10 @@ class MPMSolver:
         self._p_vol.from_numpy(p_vol.astype(np.float32))
         self._p_mass.from_numpy((p_vol * density).astype(np.float32))
         self._dyn = _ndarray_from(self.bound.table, ti.f32)
+        self._sorting = self.p2g == "coarsened" and self._can_resort()
         run = self.run_length if self.p2g == "coarsened" and not self.private_grid else 0  # else unused: one build
+        if run == P2G.CELL and not self._sorting:
+            run = P2G.RUN_LENGTH  # cells need the device sort's ranges
         spec = K.Spec(self.combos, *self.bound.spec(), self.private_grid, p2g=self.p2g, run=run)
         self._k = K.build(spec)
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
@@ -169,9 +172,9 @@ class MPMSolver:
             self.init_affine()
         self.time = 0.0
         self._sorter = None
-        self._cell_start = _ndarray_from(np.array([0, P], np.int32), ti.i32)  # one range (unsorted: correct, slow)
-        if self.p2g == "coarsened" and self.sort_particles:
-            self._sorter = P2G.DeviceSort(P, self.n_grid, self.arch)
+        self._cell_start = _ndarray_from(np.array([0, self.n_particles], np.int32), ti.i32)  # read with CELL runs only
+        if self._sorting:
+            self._sorter = P2G.DeviceSort(self.n_particles, self.n_grid, self.arch)
             self._cell_start = self._sorter.count
             self.resort()
 
@@ -189,6 +192,10 @@ class MPMSolver:
     def _perm(self, value: np.ndarray) -> None:
         self._perm_np = np.asarray(value, np.int64)
         self._perm_gen = self.sort_generation
+
+    def _can_resort(self) -> bool:
+        """Whether the storage order may change on the device (not with sort_particles off)."""
+        return self.sort_particles
 
     def resort(self) -> None:
         """Re-sort the particles by stencil base node on the device (coarsened P2G; a no-op
