@@ -1,4 +1,4 @@
-"""Sorted particles and run-coarsened P2G (docs/CONTRACTS.md "MPM step", README "MPM step speed").
+"""Sorted particles and run-coarsened P2G (docs/CONTRACTS.md "MPM step", README "Coarsened P2G").
 
 With float atomics (CUDA), P2G costs most of a substep: particles stored sorted by cell make
 consecutive threads add into the same 27 grid nodes, and those atomics serialise.  The
