@@ -135,7 +135,8 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
     dyn = Dynamics.from_config(scene.get("dynamics"), source=str(scene.get("_path", "scene file")))
     materials = rigid_setting(materials, sim)
     solver = MPMSolver(materials, n_grid=int(sim["n_grid"]), domain_size=float(sim["domain_size"]), dynamics=dyn,
-                       backend=_backend(cfg), labels=labels, sort_particles=bool(sim.get("sort_particles", True)))
+                       backend=_backend(cfg), labels=labels, sort_particles=bool(sim.get("sort_particles", True)),
+                       p2g=str(sim.get("p2g", "auto")))
     index = {l: i for i, l in enumerate(labels)}
     material = np.array([index[int(l)] for l in parts["label"]], np.int64)
     solver.set_particles(parts["x"], parts["vol"], material)

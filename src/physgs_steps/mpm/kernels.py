@@ -29,6 +29,12 @@ then fixed, so CPU runs are bitwise reproducible.  On CUDA, T = 1 and P2G uses a
 A particle whose stencil would leave the grid (a blow-up) is clamped onto it and counted in
 err[0], so a failing run never reads or writes out of bounds.
 
+``Spec.p2g == "coarsened"`` (p2g_sorted.py): P2G sums runs of consecutive particles with the
+same stencil base in registers and writes the 27 nodes once per run (threads take ``Spec.run``
+particles each, or, with ``run`` = p2g_sorted.CELL, the slots of one cell of the last device
+sort, ``cell_start`` [G^3 + 1]; the CPU's private-grid chunks likewise).  ``cell_start`` is
+read only in that case.
+
 The stress of the current F is kept per particle (``tau``): the G2P pass computes it right
 after the return map from the SVD it already has, so a substep needs at most one SVD per
 particle; ``build_constitutive(...).stress`` recomputes it after ``F`` is set from outside.
@@ -42,6 +48,7 @@ from typing import NamedTuple
 import taichi as ti
 
 from . import materials as M
+from . import p2g_sorted as P2G
 
 from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
 
@@ -78,6 +85,8 @@ class Spec(NamedTuple):
     counts: tuple        # (surface, cuboid, acceleration, translation, rotation) dynamics rows
     static: bool         # whether there are level-set colliders (static geometry)
     private_grid: bool   # CPU: one grid per chunk of particles, no atomics; CUDA: one grid, atomics
+    p2g: str = "atomic"  # atomic: one add per particle and node; coarsened: one per run of equal bases (p2g_sorted.py)
+    run: int = 0         # coarsened P2G on one grid: particles per thread; P2G.CELL: per sorted cell; 0: unused
 
 
 @ti.func
@@ -297,6 +306,9 @@ def build(spec: Spec) -> SimpleNamespace:
     has_actions = (n_acc + n_tra + n_rot) > 0
     damping = spec.damping
     private_grid = spec.private_grid
+    coarsened = spec.p2g == "coarsened"
+    run = spec.run
+    flush = P2G.make_flush(private_grid)
     two_pi = 2.0 * math.pi
     col = collider_funcs(spec.counts, spec.boundary, spec.static)
     n_obst, n_slots = col.n_obst, col.n_slots
@@ -379,11 +391,14 @@ def build(spec: Spec) -> SimpleNamespace:
         return touch
 
     @ti.func
-    def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
-                      p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
-                      act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
-                      grid_r: ti.template(), grid_rm: ti.template(), grid_rv: ti.template(), mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(),
-                      lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
+    def _p2g_prepare(p, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                     p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                     act_bits: ti.template(), mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(),
+                     lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L,
+                     wall):
+        """Particle p's stencil (base, fx, w) and what it transfers: momentum mv, APIC affine
+        matrix (stress and C terms), mass; touch = 1 when it touches an obstacle (grid_c);
+        owner = 1 + the rigid body it belongs to (0: deformable)."""
         xp = x[p]
         held = 0
         rigid = _is_rigid(mat[p], mcombo)
@@ -406,6 +421,18 @@ def build(spec: Spec) -> SimpleNamespace:
         mass = p_mass[p]
         affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
         mv = mass * vp
+        return base, fx, w, mv, affine, mass, touch, owner
+
+    @ti.func
+    def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                      p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                      act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
+                      grid_r: ti.template(), grid_rm: ti.template(), grid_rv: ti.template(), mbody: ti.template(),
+                      dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template(),
+                      err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
+        base, fx, w, mv, affine, mass, touch, owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                                                                   act_bits, mbody, dyn, lvl_phi, lvl_id, lvl_rows,
+                                                                   err, dt, t, dx, inv_dx, G, L, wall)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, ti.f32) - fx) * dx
@@ -431,11 +458,48 @@ def build(spec: Spec) -> SimpleNamespace:
                         grid_rm[0, node[0], node[1], node[2]] += weight * mass
                         grid_rv[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
 
+    @ti.func
+    def _p2g_runs(p0, p1, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                  p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                  act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
+                  mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
+                  lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
+        """Coarsened P2G of particles p0..p1-1 (p2g_sorted.py): sums in registers while the
+        stencil base stays the same, one write of the 27 nodes per run (and of grid_c when a
+        particle of the run touches an obstacle: the same nodes)."""
+        acc = P2G.acc_zero()
+        cur = ti.Vector([-1, -1, -1])  # the run's base (none yet)
+        touch_run = 0
+        for p in range(p0, p1 + 1):  # p1: past the end, closes the last run (one flush site: less code)
+            base = ti.Vector([-2, -2, -2])
+            fx = ti.Vector.zero(ti.f32, 3)
+            mv = ti.Vector.zero(ti.f32, 3)
+            affine = ti.Matrix.zero(ti.f32, 3, 3)
+            mass = 0.0
+            touch = 0
+            if p < p1:
+                # no rigid bodies here (the solver uses the atomic transfer with them): owner is 0
+                base, fx, _w, mv, affine, mass, touch, _owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                                                                       act_bits, mbody, dyn, lvl_phi, lvl_id,
+                                                                       lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+            if not P2G.same_base(base, cur):
+                if cur[0] >= 0:
+                    flush(acc, cur, c, grid_v, grid_m)
+                    if touch_run == 1:
+                        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                            grid_c[c, cur[0] + i, cur[1] + j, cur[2] + k] = 1.0
+                    acc = P2G.acc_zero()
+                    touch_run = 0
+                cur = base
+            if p < p1:
+                P2G.acc_add(acc, fx, dx, mv, affine, mass)
+                touch_run = ti.max(touch_run, touch)
+
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
                 grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
                 mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, dt: ti.f32,
-                t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32):
+                t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1):
         # the rigid bodies' grid projection (1-element when no instance is rigid): grid_r
         # [T,G,G,G] i32 owner (1 + body; + covered, - fringe), grid_rm [T,G,G,G] and grid_rv
         # [T,G,G,G] vec3 the rigid particles' mass and momentum (then velocity), mbody [K] i32
@@ -455,7 +519,24 @@ def build(spec: Spec) -> SimpleNamespace:
                 grid_rm[I] = 0.0
                 grid_rv[I] = ti.Vector.zero(ti.f32, 3)
         # P2G
-        if ti.static(private_grid):
+        if ti.static(coarsened and private_grid):
+            for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
+                _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                          act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
+                          inv_dx, G, L, wall)
+        elif ti.static(coarsened and run == P2G.CELL):
+            for k in range(cell_start.shape[0] - 1):  # one thread per cell of the last sort
+                p0 = cell_start[k]
+                p1 = cell_start[k + 1]
+                if p1 > p0:
+                    _p2g_runs(p0, p1, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                              mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+        elif ti.static(coarsened):
+            for r in range((P + run - 1) // run):  # one thread per `run` consecutive particles
+                _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                          act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
+                          inv_dx, G, L, wall)
+        elif ti.static(private_grid):
             for c in range(n_chunks):  # parallel over chunks, serial inside a chunk
                 for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
                     _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,

@@ -42,6 +42,7 @@ import taichi as ti
 
 from ..errors import ConfigError, InputError
 from . import kernels as K
+from . import p2g_sorted as P2G
 from .backend import ensure_taichi
 from . import colliders
 from . import rigid as rigid_mod
@@ -69,11 +70,20 @@ class MPMSolver:
         grid_mode: how P2G accumulates: ``private`` (one grid per CPU thread's chunk of
             particles, plain adds, reproducible), ``atomic`` (one grid, float atomics), or
             ``auto`` (private on the CPU, atomic on CUDA).
+        p2g: how P2G writes the grid (p2g_sorted.py): ``atomic`` (every particle adds to its
+            27 nodes), ``coarsened`` (a thread sums a run of consecutive particles with the
+            same stencil base in registers and writes the nodes once per run; particles are
+            re-sorted on the device every ``resort_every`` substeps), or ``auto``
+            (p2g_sorted.AUTO per arch).  Results equal up to float summation order.
+        run_length: coarsened P2G on one grid (CUDA): particles per thread, or ``"cell"``: one
+            thread per stencil-base cell of the last sort.
+        resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load).
     """
 
     def __init__(self, materials: Sequence[Material], *, n_grid: int = 32, domain_size: float = 1.0,
                  dynamics: Dynamics | None = None, backend: str = "cpu", labels: Sequence[int] | None = None,
-                 sort_particles: bool = True, grid_mode: str = "auto", static: Sequence[StaticGeometry] = ()):
+                 sort_particles: bool = True, grid_mode: str = "auto", static: Sequence[StaticGeometry] = (),
+                 p2g: str = "auto", run_length: int = P2G.RUN_LENGTH, resort_every: int = P2G.RESORT_EVERY):
         if not materials:
             raise ConfigError("materials", "at least one material is needed")
         if int(n_grid) < 8:
@@ -95,6 +105,16 @@ class MPMSolver:
             raise ConfigError("grid_mode", f"must be auto, private or atomic, got {grid_mode!r}")
         self.private_grid = grid_mode == "private" or (grid_mode == "auto" and self.arch == "cpu")
         self.n_chunks = max(1, min(os.cpu_count() or 1, MAX_CHUNKS)) if self.private_grid else 1
+        self.p2g = P2G.resolve(p2g, self.arch)
+        run_length = P2G.CELL if run_length == "cell" else run_length
+        if not isinstance(run_length, int) or (run_length < 1 and run_length != P2G.CELL) or int(resort_every) < 0:
+            raise ConfigError("p2g", f"run_length must be >= 1 or 'cell' and resort_every >= 0, got {run_length!r}, "
+                                     f"{resort_every!r}")
+        self.run_length = run_length
+        self.resort_every = int(resort_every)
+        self._sorter = None  # coarsened P2G: the device sort (p2g_sorted.DeviceSort)
+        self._since_sort = 0
+        self.sort_generation = 0  # counts device re-sorts (storage order changes)
         self.combos = tuple(sorted({m.kernel_key for m in self.materials}))
         self.time = 0.0
         self._stagger = 0.0  # dt the stored velocities are staggered with (v_{n-1/2} = v_n - dt/2 g)
@@ -153,11 +173,12 @@ class MPMSolver:
         sim = self._sim_rows
         xs, ms = x[sim], material[sim]
         self.bound = BoundDynamics(**{**bound.__dict__, "act_bits": bound.act_bits[sim]})
-        self._perm = self._sort_order(xs) if self.sort_particles else np.arange(len(xs))
+        perm = self._sort_order(xs) if self.sort_particles else np.arange(len(xs))
         Ps = len(xs)
         self.n_particles = Ps
         self._allocate(Ps)
-        perm = self._perm
+        self._order.from_numpy(perm.astype(np.int32))
+        self._perm = perm
         self._mat.from_numpy(ms[perm].astype(np.int32))
         self._act_bits.from_numpy(self.bound.act_bits[perm])
         p_vol = vol[sim][perm] * self.L ** 3
@@ -167,7 +188,16 @@ class MPMSolver:
         self._p_mass.from_numpy(p_mass)
         self._dyn = _ndarray_from(self.bound.table, ti.f32)
         self._setup_static()
-        spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid)
+        if self.p2g == "coarsened" and any(m.rigid and not m.fixed for m in self.materials):
+            # the coarsened transfer does not deposit the rigid bodies' own grids (grid_r, grid_rm,
+            # grid_rv: the moving-collider coupling); with a free rigid body the atomic one runs
+            self.p2g = "atomic"
+        self._sorting = self.p2g == "coarsened" and self._can_resort()
+        run = self.run_length if self.p2g == "coarsened" and not self.private_grid else 0  # else unused: one build
+        if run == P2G.CELL and not self._sorting:
+            run = P2G.RUN_LENGTH  # cells need the device sort's ranges
+        spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid, p2g=self.p2g,
+                      run=run)
         self._k = K.build(spec)
         self._setup_rigid(xs[perm] * self.L, p_mass.astype(np.float64), ms[perm])
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
@@ -175,6 +205,41 @@ class MPMSolver:
         if np.ptp(velocity, axis=0).max() > 0:  # a non-uniform field: C = its APIC velocity gradient
             self.init_affine()
         self.time = 0.0
+        self._sorter = None
+        self._cell_start = _ndarray_from(np.array([0, self.n_particles], np.int32), ti.i32)  # read with CELL runs only
+        if self._sorting:
+            self._sorter = P2G.DeviceSort(self.n_particles, self.n_grid, self.arch)
+            self._cell_start = self._sorter.count
+            self.resort()
+
+    # ------------------------------------------------------------------ storage order
+    @property
+    def _perm(self) -> np.ndarray:
+        """[P] the caller's row of each storage slot (particles are stored sorted; a device
+        re-sort changes it: read back from ``_order`` when needed)."""
+        if self._perm_gen != self.sort_generation:
+            self._perm_np = self._order.to_numpy().astype(np.int64)
+            self._perm_gen = self.sort_generation
+        return self._perm_np
+
+    @_perm.setter
+    def _perm(self, value: np.ndarray) -> None:
+        self._perm_np = np.asarray(value, np.int64)
+        self._perm_gen = self.sort_generation
+
+    def _can_resort(self) -> bool:
+        """Whether the storage order may change on the device (not with sort_particles off, nor
+        with free rigid instances: rigid.RigidBodies keeps their particles' storage slots)."""
+        return self.sort_particles and not any(m.rigid and not m.fixed for m in self.materials)
+
+    def resort(self) -> None:
+        """Re-sort the particles by stencil base node on the device (coarsened P2G; a no-op
+        otherwise).  Rows in ``get_state`` etc. stay in the caller's order."""
+        if self._sorter is None:
+            return
+        self._sorter.sort(self)
+        self.sort_generation += 1
+        self._since_sort = 0
 
     def _setup_rigid(self, xs: np.ndarray, mass: np.ndarray, mat_sorted: np.ndarray) -> None:
         """One rigid body per free rigid instance (storage order arrays: xs [P, 3] m, mass [P] kg)."""
@@ -243,6 +308,7 @@ class MPMSolver:
         self._p_mass = ti.ndarray(ti.f32, P)
         self._mat = ti.ndarray(ti.i32, P)
         self._act_bits = ti.ndarray(ti.i32, P)
+        self._order = ti.ndarray(ti.i32, P)  # the caller's row of each storage slot
         T = self.n_chunks
         self.grid_v = ti.ndarray(K.vec3, (T, G, G, G))
         self.grid_m = ti.ndarray(ti.f32, (T, G, G, G))
@@ -393,12 +459,15 @@ class MPMSolver:
             K.add_velocity(self.v, float(shift[0]), float(shift[1]), float(shift[2]))
             self._stagger = dt
         damp = math.exp(-b.damping * dt) if b.damping > 0 else 1.0
+        if self._sorter is not None and self.resort_every > 0 and self._since_sort >= self.resort_every:
+            self.resort()
+        self._since_sort += 1
         self._k.substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
                         self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_r, self.grid_rm, self.grid_rv, self._mbody,
                         self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
                         self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, float(dt), float(self.time),
                         float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]),
-                        float(b.gravity[2]), float(damp))
+                        float(b.gravity[2]), float(damp), self._cell_start)
         if self.rigid is not None:
             rb, kr = self.rigid, self._kr
             kr.reduce(self.x, self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_R, rb.part, rb.ct,
@@ -439,6 +508,7 @@ class MPMSolver:
         for name, arr in self._backup.items():
             arr.copy_from(getattr(self, name))
         self._backup_time = self.time
+        self._backup_order = (self.sort_generation, self._perm.copy())
         self._backup_rigid = self.rigid.copy_state() if self.rigid is not None else None
         self._backup_stagger = self._stagger
 
@@ -448,15 +518,35 @@ class MPMSolver:
             raise RuntimeError("no backup saved")
         for name, arr in self._backup.items():
             getattr(self, name).copy_from(arr)
+        self._restore_order(*self._backup_order)
         self.time = self._backup_time
         if self.rigid is not None:
             self.rigid.restore_state(self._backup_rigid)
         self._stagger = self._backup_stagger
 
+    def _restore_order(self, generation: int, perm: np.ndarray) -> None:
+        """After a backup's state arrays came back: if the particles were re-sorted since, put
+        the arrays the backup does not hold (mass, volume, material, action bits) into the
+        backup's storage order ``perm`` too."""
+        if generation == self.sort_generation:
+            return
+        slot = np.empty_like(self._perm)
+        slot[self._perm] = np.arange(len(slot))
+        src = slot[perm]  # current slot of each backup slot's particle
+        for name in ("_p_vol", "_p_mass", "_mat", "_act_bits"):
+            arr = getattr(self, name)
+            arr.from_numpy(arr.to_numpy()[src])
+        self._order.from_numpy(perm.astype(np.int32))
+        self.sort_generation += 1
+        self._perm = perm
+        self._since_sort = 0
+
     def gather_rows(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions [R, 3] (domain units) and F [R, 3, 3] of particle ``rows`` (input order)."""
         rows = np.asarray(rows, np.int64)
-        if not hasattr(self, "_gather_cache") or self._gather_cache[0] is not rows:
+        if not hasattr(self, "_gather_cache") or self._gather_cache[0] is not rows or \
+                self._gather_gen != self.sort_generation:
+            self._gather_gen = self.sort_generation
             storage = np.full(self._n_input, -1, np.int64)
             storage[self._sim_rows[self._perm]] = np.arange(self.n_particles)
             st = storage[rows]
@@ -482,10 +572,11 @@ class MPMSolver:
     def device_bytes(self) -> int:
         """Bytes of the solver's arrays (particles, grid, tables, backup)."""
         P, G = self.n_particles, self.n_grid
-        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1)
+        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1 + 1)
         backup = 4 * (3 + 3 + 9 + 9 + 9 + 1) * P if self._backup is not None else 0
+        sort = self._sorter.nbytes() if self._sorter is not None else 0
         owner = 20 * self.n_chunks * G ** 3 if self.rigid is not None else 0  # grid_r, grid_rm, grid_rv
-        return per_particle * P + 16 * self.n_chunks * G ** 3 + owner + backup
+        return per_particle * P + 16 * self.n_chunks * G ** 3 + owner + backup + sort
 
     # ------------------------------------------------------------------ helpers
     def wave_speeds(self) -> np.ndarray:
