@@ -315,7 +315,7 @@ class ColumnCollapse(Case):
              "quadratic B-spline stencil (3 cells) with the deposit below, and the transfers smooth the velocity "
              "across it.  Set-up fix: the cubic domain was sized for a front at 1.4 x the band's top; it is now "
              "fitted to 1.1 x (a front up to 10% beyond the band still fits; `reached_far_end` flags a run that "
-             "meets the far end), so the cells are 14-23% smaller at the same n_grid: 0.54 -> 0.54, 1.00 -> 1.10, "
+             "meets the far end), so the cells are 12-19% smaller at the same n_grid: 0.54 -> 0.54, 1.00 -> 1.10, "
              "2.02 -> 2.27, 2.50 -> 3.10 at a = 0.5, 1, 2, 3.  "
              "(3) The front criterion (one full particle layer, h = dx / 2 at 8 per cell) cuts the deposit's thin "
              "tip: at a = 1 the front is 1.10 with one layer, 1.24 with half a layer, 1.37 at the farthest particle "
