@@ -26,9 +26,10 @@ rule all:
         metrics=lambda w: plan_path(main_scene(), "metrics"),
 
 
-# The warm stage worker (config `worker`, src/physgs_steps/worker.py) lives as long as the run.
+# The warm stage worker (config `worker`, src/physgs_steps/worker.py) outlives a successful run
+# by worker.idle_seconds (the next run starts warm) unless worker.stop_after_run; a failed run stops it.
 onsuccess:
-    stop_worker()
+    stop_worker(after_success=True)
 
 
 onerror:

@@ -228,6 +228,13 @@ def test_aliases_and_unknown_models():
 
 
 # ----------------------------------------------------------------------------- SVD
+@pytest.fixture(params=["lapack", "jacobi"])
+def svd_method(request, monkeypatch):
+    """Both forward SVDs (CPU default LAPACK, CUDA default element-wise Jacobi)."""
+    monkeypatch.setenv("PHYSGS_SVD3", request.param)
+    return request.param
+
+
 def test_svd_convention_and_backward():
     _, _, _, F = random_state(16, seed=3, spread=0.4)
     F[0] = np.diag([1.2, 0.8, -0.5])
@@ -247,7 +254,7 @@ def test_svd_convention_and_backward():
     assert torch.autograd.gradcheck(f, (Fg,), eps=1e-6, atol=1e-5)
 
 
-def test_svd_backward_finite_at_repeated_singular_values():
+def test_svd_backward_finite_at_repeated_singular_values(svd_method):
     F = torch.eye(3, dtype=torch.float64).repeat(4, 1, 1)
     F[1] = 1.2 * F[1]
     F = F.requires_grad_(True)
@@ -255,6 +262,49 @@ def test_svd_backward_finite_at_repeated_singular_values():
     loss = (U @ V.transpose(-1, -2)).sum() + s.sum()
     loss.backward()
     assert torch.isfinite(F.grad).all()
+
+
+def test_jacobi_svd_agrees_with_lapack():
+    """The CUDA path's SVD (element-wise Jacobi + Givens QR) against torch.linalg.svd on random,
+    near-identity, reflected, repeated, rank-deficient and zero matrices; det3 against LAPACK."""
+    from physgs_steps.bgdo.torch_step import det3, svd3_jacobi, svd3_lapack
+
+    g = torch.Generator().manual_seed(4)
+    eye = torch.eye(3, dtype=torch.float64)
+    sets = [torch.randn(500, 3, 3, generator=g, dtype=torch.float64),
+            eye + 1e-3 * torch.randn(500, 3, 3, generator=g, dtype=torch.float64),
+            torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)) @ (eye + 0.2 * torch.randn(50, 3, 3, generator=g, dtype=torch.float64)),
+            torch.diag(torch.tensor([2.0, 2.0, 0.5], dtype=torch.float64)).repeat(5, 1, 1),
+            torch.randn(50, 3, 1, generator=g, dtype=torch.float64) @ torch.randn(50, 1, 3, generator=g, dtype=torch.float64),
+            torch.zeros(3, 3, 3, dtype=torch.float64), eye.repeat(4, 1, 1)]
+    for A in sets:
+        U, s, V = svd3_jacobi(A)
+        U2, s2, V2 = svd3_lapack(A)
+        assert torch.allclose(U @ torch.diag_embed(s) @ V.transpose(-1, -2), A, atol=1e-12)
+        assert torch.allclose(s, s2, atol=1e-12)
+        assert torch.allclose(det3(U), torch.ones(len(A), dtype=A.dtype)) and torch.allclose(det3(V), torch.ones(len(A), dtype=A.dtype))
+        full = s2[:, 1].abs() > 1e-9  # U V^T is unique where at most the last singular value vanishes
+        assert torch.allclose((U @ V.transpose(-1, -2))[full], (U2 @ V2.transpose(-1, -2))[full], atol=1e-10)
+        assert torch.allclose(det3(A), torch.linalg.det(A), atol=1e-12)
+
+
+def test_pseudo_step_and_gradient_same_with_either_svd(monkeypatch):
+    """Every elasticity model's pseudo step and d(stress)/d(log E) with the Jacobi SVD (CUDA's)
+    equal those with LAPACK's."""
+    P = 60
+    x, v, Cm, F = random_state(P, seed=8, spread=0.3)
+    insts = [inst(k, el, "identity", E=10 ** (3 + k)) for k, el in enumerate(B.ELASTICITY)]
+    label = np.arange(P) % len(insts)
+    table = B.instance_table(insts, label, np.full(P, 1e-6), dtype=torch.float64)
+    res = {}
+    for method in ("lapack", "jacobi"):
+        monkeypatch.setenv("PHYSGS_SVD3", method)
+        leaf = B.log_E_from_instances(insts).requires_grad_(True)
+        out = B.pseudo_step(tstate(x, v, Cm, F), 1e-4, leaf, table, B.GridSpec(16))
+        g, = torch.autograd.grad(out["tau"].flatten(1).norm(dim=1).sum() + out["F"].sum(), [leaf])
+        res[method] = (out["tau"].detach(), out["F"].detach(), g)
+    for a, b in zip(res["lapack"], res["jacobi"]):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * float(a.abs().max()))
 
 
 # ----------------------------------------------------------------------------- the step

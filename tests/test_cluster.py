@@ -84,12 +84,31 @@ def test_voxel_dbscan_agrees_with_exact_on_builtin_scenes(name):
     sim, _, _ = normalise_scene(scene, transform_config({"source": f"builtin:{name}"}),
                                 prepare_config({"prepare": section_defaults("prepare")}), name, LOG)
     pts = sim.means.astype(np.float64)
-    exact, _ = CL.assign_noise(pts, CL.sort_by_size(CL.dbscan_labels(pts, 0.05, 10, "exact")))
+    from sklearn.cluster import DBSCAN
+
+    raw = CL.dbscan_labels(pts, 0.05, 10, "exact")
+    assert (raw == DBSCAN(eps=0.05, min_samples=10).fit(pts).labels_).all()
+    exact, _ = CL.assign_noise(pts, CL.sort_by_size(raw))
     voxel, _ = CL.assign_noise(pts, CL.sort_by_size(CL.dbscan_labels(pts, 0.05, 10, "voxel")))
     assert exact.max() == voxel.max() == 1
     assert (exact == voxel).all()
     # and the instances are the true objects
     assert adjusted_rand_score(sim.extras["gt_label"], voxel) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_dbscan_is_scikit_learns(weighted):
+    """Our k-d tree DBSCAN gives scikit-learn's labels exactly (numbering, border points,
+    noise, sample weights), on clustered and on sparse uniform points."""
+    from sklearn.cluster import DBSCAN
+
+    rng = np.random.default_rng(5)
+    sets = [two_objects(3000, rng, noise=80), rng.uniform(0, 1, size=(2500, 3))]
+    for pts in sets:
+        w = rng.integers(1, 4, len(pts)) if weighted else None
+        for eps, ms in [(0.05, 10), (0.04, 3), (0.07, 25), (0.02, 1)]:
+            ref = DBSCAN(eps=eps, min_samples=ms).fit(pts, sample_weight=w).labels_
+            assert (CL.dbscan(pts, eps, ms, w) == ref).all(), (eps, ms)
 
 
 def test_dbscan_labels_shapes_and_empty():

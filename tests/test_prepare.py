@@ -295,3 +295,24 @@ def test_builtin_bear(tmp_path):
     assert summary["n_kept"] == sim.n > 0
     assert "gt_label" in sim.extras and sim.extras["gt_label"].dtype == np.int32
     assert (sim.means > prepare.MARGIN).all() and (sim.means < 1 - prepare.MARGIN).all()
+
+
+def test_builtin_scene_is_generated_once_per_process():
+    """The warm worker runs prepare of the same built-in scene again: the second call reuses the
+    scene generated before, as an independent copy equal to a fresh generation."""
+    import logging
+
+    from physgs_steps import prepare as P
+
+    log = logging.getLogger("test_prepare")
+    cfg = {"source": "builtin:bear", "builtin": {"n_gaussians": 500, "seed": 7}}
+    P._BUILTIN_CACHE.clear()
+    a, _ = P.load_source({}, cfg, log)
+    assert len(P._BUILTIN_CACHE) == 1
+    a.means[:] = 0.0  # a caller changing its copy
+    b, _ = P.load_source({}, cfg, log)
+    P._BUILTIN_CACHE.clear()
+    c, _ = P.load_source({}, cfg, log)
+    for k in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        assert np.array_equal(getattr(b, k), getattr(c, k)), k
+    assert not np.array_equal(a.means, b.means)

@@ -196,3 +196,14 @@ def test_bad_files_and_config(tmp_path):
         validate({"backend": "opengl"}, schema, "test", "render")
     with pytest.raises(ConfigError, match="camera.elevation_deg"):
         validate({"elevation_deg": 95}, load_schema("scene_camera.schema.yaml"), "test", "camera")
+
+
+def test_frames_per_call_bounds_gpu_memory():
+    """gsplat's frames per call: render.batch at most, render.batch_gaussians gaussian-frames at most."""
+    from physgs_steps.render.stage import frames_per_call
+
+    assert frames_per_call(16, 2_000_000, 20_000, 8_388_608, 512 * 512) == 16
+    assert frames_per_call(16, 2_000_000, 300_000, 8_388_608, 512 * 512) == 6
+    assert frames_per_call(16, 2_000_000, 300_000, 8_388_608, 1920 * 1080) == 4
+    assert frames_per_call(16, 2_000_000, 1_000_000, 8_388_608, 512 * 512) == 2
+    assert frames_per_call(16, 2_000_000, 10_000_000) == 1

@@ -21,7 +21,7 @@ from pathlib import Path
 from . import config as C
 from . import plan as P
 from .errors import PhysGSError
-from .runtime import project_root, run_stage, write_json
+from .runtime import project_root, run_stage, timed_stage_function, write_json
 
 STAGES = ("prepare", "cluster", "fill", "vlm_params", "pinned_params", "forward_sim", "bgdo_update", "final_sim", "render", "metrics")
 
@@ -122,7 +122,8 @@ def main(argv=None) -> int:
             if args.cmd == "stages" and not args.force and all(Path(o).exists() for o in outs.values()):
                 continue
             log = str(Path(P.RESULTS) / plan.target / "logs" / f"{name}{'-' + step if step else ''}.cli.log")
-            res = run_stage(name, _stage_fn(name), ins, outs, scfg, log)
+            fn, imp = timed_stage_function(name, _stage_fn)
+            res = run_stage(name, fn, ins, outs, scfg, log, import_seconds=imp)
             summary.append({"stage": name, "step": step, **{k: v for k, v in res.items() if isinstance(v, (int, float, str))}})
         if getattr(args, "summary", None):
             write_json(args.summary, summary)

@@ -3,9 +3,10 @@
 FastPhysGS (Sec. 4.1, appendix C.2) runs DBSCAN with radius r (0.05-0.07 in the
 normalised domain) on the gaussian means. Here:
 
-* **Algorithm.** ``cluster.algorithm: exact`` is scikit-learn's DBSCAN on every gaussian.
-  It needs every eps-neighbourhood, which at 300k gaussians and r = 0.05 is tens of
-  thousands of points per gaussian (far beyond memory and minutes of time), so ``voxel``
+* **Algorithm.** ``cluster.algorithm: exact`` is DBSCAN on every gaussian (scikit-learn's
+  labels, computed from k-d tree queries by :func:`dbscan`, 0.1-0.3 s at 20k gaussians instead
+  of scikit-learn's import and all-pairs neighbour lists, seconds). At 300k gaussians and
+  r = 0.05 an eps-neighbourhood holds thousands of gaussians, so ``voxel``
   (the default above ``exact_max_points``) runs DBSCAN on the centroids of voxels of side
   ``voxel_factor * eps``, each weighted by its gaussian count (``sample_weight``, so the
   core-point rule still counts gaussians), and gives every gaussian the label of its voxel.
@@ -72,26 +73,24 @@ def cluster_config(cfg: dict) -> dict:
 
 # ---------------------------------------------------------------------------- DBSCAN
 def dbscan_labels(points, eps: float, min_samples: int, algorithm: str = "auto",
-                  voxel_factor: float = 0.25, exact_max_points: int = 20000,
-                  n_jobs: int | None = -1) -> np.ndarray:
+                  voxel_factor: float = 0.25, exact_max_points: int = 20000) -> np.ndarray:
     """DBSCAN labels of points; -1 marks noise.
 
     Args:
         points: [N, 3] positions (domain units).
         eps: DBSCAN radius.
         min_samples: core-point threshold (points within eps, the point itself included).
-        algorithm: ``exact`` (scikit-learn on all points), ``voxel`` (count-weighted voxel
+        algorithm: ``exact`` (DBSCAN on all points), ``voxel`` (count-weighted voxel
             centroids, labels propagated to the voxel's points) or ``auto`` (exact up to
             ``exact_max_points`` points).
         voxel_factor: voxel side as a fraction of eps (``voxel``).
         exact_max_points: threshold of ``auto``.
-        n_jobs: scikit-learn worker count.
 
     Returns:
-        [N] int32 raw DBSCAN labels (0..K-1 in order of discovery, -1 = noise).
+        [N] int32 raw DBSCAN labels (0..K-1 in order of discovery, -1 = noise): the labels of
+        scikit-learn's DBSCAN (``tests/test_cluster.py`` compares them), computed by
+        :func:`dbscan` without scikit-learn's import and its all-pairs neighbour lists.
     """
-    from sklearn.cluster import DBSCAN  # lazy: 1-2 s of imports, not needed when boxes label
-
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"dbscan_labels: points must be [N, 3], got {pts.shape}")
@@ -100,14 +99,96 @@ def dbscan_labels(points, eps: float, min_samples: int, algorithm: str = "auto",
     if algorithm == "auto":
         algorithm = "exact" if pts.shape[0] <= exact_max_points else "voxel"
     if algorithm == "exact":
-        lab = DBSCAN(eps=eps, min_samples=min_samples, n_jobs=n_jobs).fit(pts).labels_
-        return lab.astype(np.int32)
+        return dbscan(pts, eps, min_samples)
     if algorithm != "voxel":
         raise ValueError(f"dbscan_labels: unknown algorithm {algorithm!r}")
     centroids, counts, inverse = voxel_centroids(pts, voxel_factor * eps)
-    lab = DBSCAN(eps=eps, min_samples=min_samples, n_jobs=n_jobs).fit(
-        centroids, sample_weight=counts).labels_
-    return lab[inverse].astype(np.int32)
+    return dbscan(centroids, eps, min_samples, counts)[inverse]
+
+
+def _components(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[n] connected-component id of every node of the undirected graph with edges (a, b)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    graph = coo_matrix((np.ones(a.size, np.int8), (a, b)), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def dbscan(points: np.ndarray, eps: float, min_samples: int, sample_weight=None) -> np.ndarray:
+    """Exact DBSCAN (scikit-learn's definition and label order) from k-d tree queries.
+
+    A point is core when the weights of the points within ``eps`` (distance <= eps, itself
+    included) sum to at least ``min_samples``; clusters are the connected components of core
+    points closer than eps, numbered in the order of their lowest-index core point; a non-core
+    point within eps of core points takes the smallest of their cluster labels (what
+    scikit-learn's expansion order gives), else it is noise (-1).
+
+    Instead of every point's eps-neighbour list (hundreds per gaussian on the built-in scenes):
+    (1) points of a cell of side eps/sqrt(3) are mutual neighbours, so a cell whose weight
+    reaches ``min_samples`` makes all its points core; only the others are counted. (2) The
+    components of core points closer than eps/4 are parts of the true clusters; the largest
+    part's links to the others come from one nearest-neighbour query, the links among the
+    others from their eps-pairs.
+
+    Args:
+        points: [N, 3] positions.
+        eps: neighbourhood radius.
+        min_samples: core threshold (weight).
+        sample_weight: [N] weights (None = 1).
+
+    Returns:
+        [N] int32 labels.
+    """
+    pts = np.asarray(points, dtype=np.float64)  # [N, 3]
+    n = pts.shape[0]
+    labels = np.full(n, NOISE, np.int64)  # [N]
+    if n == 0:
+        return labels.astype(np.int32)
+    w = np.ones(n) if sample_weight is None else np.asarray(sample_weight, np.float64)  # [N]
+    tree = cKDTree(pts)
+    h = eps / np.sqrt(3.0) * (1.0 - 1e-9)  # cell diagonal just under eps
+    key = np.floor((pts - pts.min(axis=0)) / h).astype(np.int64)  # [N, 3]
+    dims = key.max(axis=0) + 1
+    flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]  # [N]
+    _, cell = np.unique(flat, return_inverse=True)
+    cell = cell.reshape(-1)
+    core = np.bincount(cell, w)[cell] >= min_samples  # [N] certain core points
+    unsure = np.flatnonzero(~core)
+    if unsure.size:
+        pairs = cKDTree(pts[unsure]).sparse_distance_matrix(tree, eps, output_type="ndarray")
+        core[unsure] = np.bincount(pairs["i"], w[pairs["j"]], unsure.size) >= min_samples
+    cidx = np.flatnonzero(core)  # [C]
+    if cidx.size == 0:
+        return labels.astype(np.int32)
+    cp = pts[cidx]  # [C, 3]
+    ctree = cKDTree(cp)
+    pr = ctree.query_pairs(eps / 4, output_type="ndarray")  # [P, 2]
+    part = _components(cidx.size, pr[:, 0], pr[:, 1])  # [C] parts of clusters
+    big = np.bincount(part).argmax()
+    rest = np.flatnonzero(part != big)
+    a = b = np.zeros(0, np.int64)
+    if rest.size:
+        inside = np.flatnonzero(part == big)
+        d, k = cKDTree(cp[inside]).query(cp[rest], k=1, distance_upper_bound=eps)
+        hit = np.isfinite(d)
+        pr2 = cKDTree(cp[rest]).query_pairs(eps, output_type="ndarray")
+        a = np.concatenate([part[rest[hit]], part[rest[pr2[:, 0]]]])
+        b = np.concatenate([part[inside[k[hit]]], part[rest[pr2[:, 1]]]])
+    comp = _components(int(part.max()) + 1, a, b)[part]  # [C] cluster of every core point
+    ucomp, first = np.unique(comp, return_index=True)
+    rank = np.empty(int(ucomp.max()) + 1, np.int64)
+    rank[ucomp[np.argsort(first)]] = np.arange(ucomp.size)
+    labels[cidx] = rank[comp]
+    border = np.flatnonzero(~core)
+    if border.size:
+        pairs = cKDTree(pts[border]).sparse_distance_matrix(ctree, eps, output_type="ndarray")
+        if pairs.size:
+            low = np.full(border.size, np.iinfo(np.int64).max)
+            np.minimum.at(low, pairs["i"], labels[cidx[pairs["j"]]])
+            near = low < np.iinfo(np.int64).max
+            labels[border[near]] = low[near]
+    return labels.astype(np.int32)
 
 
 def voxel_centroids(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

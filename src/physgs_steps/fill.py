@@ -851,4 +851,6 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
                    "particle_spacing": spacing})
     write_json(outputs["report"], report)
     log.info("wrote %s", outputs["report"])
-    return {"n_filled": int(result.x.shape[0]), "n_particles": p, "seconds": round(seconds, 3)}
+    return {"n_filled": int(result.x.shape[0]), "n_particles": p, "seconds": round(seconds, 3),
+            "timings": {k: round(float(v), 3) for k, v in result.seconds.items()
+                        if isinstance(v, (int, float, np.floating))}}

@@ -27,6 +27,7 @@ the stage's module is given apart.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import os
@@ -53,8 +54,8 @@ class GpuMemory:
     every figure is None.
     """
 
-    def __init__(self, index: int = 0, interval_s: float = 0.01):
-        self.index, self.interval = index, interval_s
+    def __init__(self, index: int = 0, interval_s: float = 0.01, baseline: float | None = None):
+        self.index, self.interval, self._baseline = index, interval_s, baseline
         self.samples: list[tuple[float, float]] = []
         self._stop = threading.Event()
         self._read = self._reader()
@@ -110,6 +111,10 @@ class GpuMemory:
 
     @property
     def baseline(self) -> float | None:
+        """The level measured against: given (the GPU before the benchmark's first run, so that
+        a warm worker left by the previous run counts), else the first sample."""
+        if self._baseline is not None:
+            return self._baseline
         return self.samples[0][1] if self.samples else None
 
     @property
@@ -231,12 +236,14 @@ def _run(cmd: list[str], wd: Path, env: dict, log: Path, cpu: list | None = None
 
 # ============================================================================ structures
 def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path, with_metrics: bool = False,
-                  gpu_index: int = 0) -> dict:
-    """One timed run of the whole pipeline of ``target`` in ``wd`` (outputs are recomputed)."""
+                  gpu_index: int = 0, gpu_baseline: float | None = None) -> dict:
+    """One timed run of the whole pipeline of ``target`` in ``wd`` (outputs are recomputed).
+    GPU memory is counted above ``gpu_baseline`` (MiB in use) when given, else above the level
+    at the start of this run."""
     jobs = _jobs(wd, target, with_metrics)
     env = _env(cache, worker=structure == "worker")
     rows: list[dict] = []
-    with GpuMemory(gpu_index) as mem:
+    with GpuMemory(gpu_index, baseline=gpu_baseline) as mem:
         t0 = time.perf_counter()
         if structure == "processes":
             for name, step in jobs:
@@ -257,7 +264,8 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
             for r in json.loads(out.read_text())["jobs"]:
                 rows.append({"stage": r["stage"], "step": r["step"], "seconds": r["seconds"],
                              "stage_seconds": r["seconds"], "simulate_seconds": r.get("simulate_seconds"),
-                             "peak_gpu_mib": mem.peak_between(r["t0"], r["t1"])})
+                             "peak_gpu_mib": mem.peak_between(r["t0"], r["t1"]),
+                             "import_seconds": r.get("import_seconds"), "breakdown": r.get("breakdown")})
         else:
             from . import config as C
             from . import plan as P
@@ -268,19 +276,70 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
             cmd = [sys.executable, "-m", "snakemake", "--cores", "1", "--forceall", "--configfile", "config.yaml",
                    "--", goal]  # the worker is switched by PHYSGS_WORKER (_env)
             _run(cmd, wd, env, log)
+            if structure == "worker":
+                idle = _idle_worker(cache, mem)
             for name, step in jobs:
                 b = Path(wd / plan.benchmark_path(name, step))
                 secs = None
                 if b.exists():
                     lines = b.read_text().splitlines()
                     secs = float(lines[-1].split("\t")[0])
-                rows.append({"stage": name, "step": step, "seconds": secs, "stage_seconds": None,
-                             "simulate_seconds": _simulate_seconds(wd, plan, name, step), "peak_gpu_mib": None})
+                from .benchmark.readers import stage_summary
+
+                summ = stage_summary(wd / plan.log_path(name, step)) or {}
+                rows.append({"stage": name, "step": step, "seconds": secs, "stage_seconds": summ.get("seconds"),
+                             "simulate_seconds": _simulate_seconds(wd, plan, name, step), "peak_gpu_mib": None,
+                             "breakdown": breakdown(summ)})
         total = time.perf_counter() - t0
+        if structure == "worker":
+            total -= idle.pop("sampled_seconds")
     sim = [r["simulate_seconds"] for r in rows if r["stage"] in SIM_STAGES and r["simulate_seconds"] is not None]
-    return {"structure": structure, "total_seconds": round(total, 2), "jobs": rows,
-            "substep_seconds": round(sum(sim), 2) if sim else None, "peak_gpu_mib": mem.peak_above_baseline,
-            "gpu_baseline_mib": mem.baseline}
+    res = {"structure": structure, "total_seconds": round(total, 2), "jobs": rows,
+           "substep_seconds": round(sum(sim), 2) if sim else None, "peak_gpu_mib": mem.peak_above_baseline,
+           "gpu_baseline_mib": mem.baseline}
+    if structure == "worker":
+        res["idle_worker"] = idle
+    return res
+
+
+def _idle_worker(cache: Path, mem: "GpuMemory") -> dict:
+    """What the warm worker holds once the run is over and it waits for the next one: its ping
+    (pid, jobs served, resident MiB, torch's reserved CUDA MiB) and the GPU memory in use above
+    the level before the first run (NVML, after 0.5 s).  ``sampled_seconds`` is the time spent
+    here (not part of the run)."""
+    from . import worker as W
+
+    t0 = time.perf_counter()
+    socks = sorted((cache / "w").glob("*.sock"))
+    info = W.ping(socks[0]) if socks else None
+    time.sleep(0.5)
+    gpu = None
+    if mem.available and mem.baseline is not None:
+        with contextlib.suppress(Exception):
+            gpu = round(mem._read() - mem.baseline, 1)
+    return {"ping": info, "gpu_in_use_above_baseline_mib": gpu, "sampled_seconds": time.perf_counter() - t0}
+
+
+def stop_workers(cache: Path) -> int:
+    """Stop the warm workers left in ``cache/w`` (they outlive a run by worker.idle_seconds)."""
+    from . import worker as W
+
+    return sum(bool(W.shutdown(p)) for p in sorted((cache / "w").glob("*.sock")))
+
+
+def breakdown(summary: dict | None) -> dict:
+    """The fixed-cost figures of a stage summary (``runtime.run_stage``'s last log line): every
+    key ending in ``_seconds`` or ``_mb`` and the ``timings`` dict the GPU stages record (first
+    CUDA call, Taichi start, kernel loading, reading, encoding, ...)."""
+    out: dict = {}
+    for k, v in (summary or {}).items():
+        if k == "timings" and isinstance(v, dict):
+            out.update({f"t_{kk}": vv for kk, vv in v.items()})
+        elif isinstance(v, (int, float)) and (k.endswith("_seconds") or k.endswith("_mb") or k == "seconds"):
+            out[k] = v
+        elif k == "seconds_parts" and isinstance(v, dict):
+            out.update({f"part_{kk}": vv for kk, vv in v.items()})
+    return out
 
 
 def _simulate_seconds(wd: Path, plan, name: str, step: str | None) -> float | None:
@@ -312,15 +371,18 @@ def measure(target: str = "bear", *, structures=STRUCTURES, n_gaussians: int | N
     wd = make_workdir(tmp, scene, n_gaussians, overrides, config)
     result = {"target": target, "n_gaussians": n_gaussians, "overrides": overrides or {}, "device": _device(),
               "runs": [], "workdir": str(wd)}
+    gpu0 = GpuMemory()
+    base = gpu0._read() if gpu0.available else None  # before any run (and any warm worker)
     for structure in structures:
         cache = wd / f".cache-{structure}"
         if cache.exists():
+            stop_workers(cache)
             shutil.rmtree(cache)
         blog = wd / f"bench-{structure}.log"
         if not cold:  # warm the kernel cache first, untimed
-            run_structure(structure, wd, target, cache, blog, with_metrics)
+            run_structure(structure, wd, target, cache, blog, with_metrics, gpu_baseline=base)
         for temp in (["cold"] if cold else []) + (["warm"] if warm else []):
-            r = run_structure(structure, wd, target, cache, blog, with_metrics)
+            r = run_structure(structure, wd, target, cache, blog, with_metrics, gpu_baseline=base)
             r["temperature"] = temp
             result["runs"].append(r)
             log(f"{structure:9s} {temp:4s}: {r['total_seconds']:7.2f} s, substeps {r['substep_seconds']} s, "
@@ -329,6 +391,7 @@ def measure(target: str = "bear", *, structures=STRUCTURES, n_gaussians: int | N
             if out:
                 Path(out).parent.mkdir(parents=True, exist_ok=True)
                 Path(out).write_text(json.dumps(result, indent=1, default=str) + "\n")
+        stop_workers(cache)  # the warm run reused the cold run's worker, as a user's next run would
     return result
 
 
@@ -349,6 +412,21 @@ def table(result: dict) -> str:
         slow = sorted((j for j in r["jobs"] if j["seconds"] is not None), key=lambda j: -j["seconds"])[:3]
         lines.append(f"| {r['structure']} | {r['temperature']} | {r['total_seconds']:.2f} | {r['substep_seconds']} | "
                      f"{r['peak_gpu_mib']} | " + ", ".join(f"{j['stage']} {j['seconds']:.2f}" for j in slow) + " |")
+    for r in result["runs"]:
+        if not any(j.get("breakdown") for j in r["jobs"]):
+            continue
+        lines += ["", f"Fixed costs per job, {r['structure']} {r['temperature']} (seconds; `t_*`: the stage's own "
+                      "timings, e.g. t_cuda_start = its first CUDA call, t_first_substep = kernel loading)", "",
+                  "| job | seconds | import | peak GPU (MiB) | breakdown |", "|---|---|---|---|---|"]
+        for j in r["jobs"]:
+            b = dict(j.get("breakdown") or {})
+            imp = j.get("import_seconds", b.pop("import_seconds", None))
+            b.pop("seconds", None)
+            parts = ", ".join(f"{k}={v}" for k, v in b.items() if v is not None)
+            lines.append(f"| {j['stage']}{' ' + j['step'] if j.get('step') else ''} | {j['seconds']} | {imp} | "
+                         f"{j.get('peak_gpu_mib')} | {parts} |")
+        if r.get("idle_worker"):
+            lines += ["", f"Idle worker after the run: {json.dumps(r['idle_worker'], default=str)}"]
     return "\n".join(lines)
 
 
@@ -411,9 +489,12 @@ def _chain(target: str, config: str, out: str, with_metrics: bool) -> None:
         ins, outs, scfg = stage_io(plan, name, step)
         logp = str(Path("results") / plan.target / "logs" / f"{name}{'-' + step if step else ''}.bench.log")
         t0w, t0 = time.time(), time.perf_counter()
-        res = run_stage(name, _stage_fn(name), ins, outs, scfg, logp)
+        fn = _stage_fn(name)
+        t_imp = time.perf_counter() - t0
+        res = run_stage(name, fn, ins, outs, scfg, logp, import_seconds=round(t_imp, 3))
         rows.append({"stage": name, "step": step, "seconds": round(time.perf_counter() - t0, 3), "t0": t0w,
-                     "t1": time.time(), "simulate_seconds": res.get("simulate_seconds")})
+                     "t1": time.time(), "simulate_seconds": res.get("simulate_seconds"),
+                     "import_seconds": round(t_imp, 3), "breakdown": breakdown(res)})
     Path(out).write_text(json.dumps({"jobs": rows}, indent=1))
 
 

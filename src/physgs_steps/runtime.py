@@ -270,8 +270,43 @@ def _json_default(o: Any) -> Any:
 StageFn = Callable[[dict, dict, dict, logging.Logger], dict]
 
 
-def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, log_path=None) -> dict:
+def _release_cuda_cache() -> None:
+    """Give torch's cached CUDA blocks back after a stage (BGDO's pseudo steps reserve GBs at
+    300k particles; the next stage in the same process, e.g. render, must not stack on them)."""
+    torch = sys.modules.get("torch")
+    if torch is None:
+        return
+    with contextlib.suppress(Exception):
+        if torch.cuda.is_available() and torch.cuda.is_initialized():
+            torch.cuda.empty_cache()
+
+
+def cuda_start_seconds(torch) -> float:
+    """Seconds of this process's first CUDA call through ``torch`` (driver, context, caching
+    allocator, one kernel), 0.0 when torch had already started CUDA here.  Stages call it before
+    their own work so that their logs show the one-off cost apart (summary ``timings``)."""
+    if torch.cuda.is_initialized():
+        return 0.0
+    t0 = time.perf_counter()
+    torch.zeros(1, device="cuda").add_(1)
+    torch.cuda.synchronize()
+    return round(time.perf_counter() - t0, 3)
+
+
+def timed_stage_function(name: str, getter: Callable[[str], StageFn]) -> tuple[StageFn, float]:
+    """``getter(name)`` and the seconds it took (importing the stage's modules: torch, Taichi,
+    gsplat the first time in a process, nothing afterwards)."""
+    t0 = time.perf_counter()
+    fn = getter(name)
+    return fn, round(time.perf_counter() - t0, 3)
+
+
+def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, log_path=None,
+              import_seconds: float | None = None) -> dict:
     """Run one stage with logging, timing and peak-memory accounting.
+
+    ``import_seconds`` (the time it took to import the stage's function, when the caller
+    measured it) goes into the summary line; ``seconds`` is the stage itself.
 
     On a :class:`PhysGSError` the message is logged, every declared output that exists
     is removed (no half-written artifact) and the process exits with status 1.
@@ -296,6 +331,9 @@ def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, lo
         exc.physgs_crash = True  # not a PhysGSError: the warm worker (worker.py) does not serve on
         raise exc from None
     summary.setdefault("seconds", round(time.perf_counter() - t0, 3))
+    _release_cuda_cache()
+    if import_seconds is not None:
+        summary.setdefault("import_seconds", import_seconds)
     summary.setdefault("peak_rss_mb", round(peak_rss_mb(), 1))
     cp = cuda_peak_mb()
     if cp is not None:

@@ -149,6 +149,12 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
 def _prepare(inputs: dict, cfg: dict, log: logging.Logger):
     if "sim" not in cfg:
         raise ConfigError("sim", "the stage config has no 'sim' section")
+    import time
+
+    from .mpm.backend import counters
+
+    t0 = time.perf_counter()
+    before = counters()
     parts = load_particles(inputs["particles"])
     params, materials, labels = load_materials(inputs["params"], parts["label"])
     stepper = TimeStepper.from_config(cfg["sim"])
@@ -158,7 +164,29 @@ def _prepare(inputs: dict, cfg: dict, log: logging.Logger):
     if note:
         log.warning("%s", note)
     rest = RestPolicy.from_config(cfg["sim"].get("rest"), solver.dynamics)
+    after = counters()
+    solver.startup = {"taichi_init": round(after["init_seconds"], 3) if after["inits"] > before["inits"] else 0.0,
+                      "setup": round(time.perf_counter() - t0, 3), "kernels_before": before["kernels"]}
     return parts, params, solver, stepper, th, rest
+
+
+def _timings(solver: MPMSolver, res: RunResult, log: logging.Logger, **extra) -> dict:
+    """The stage's fixed costs (summary ``timings``): Taichi start (0 when this process had it
+    running), set-up (reading, solver, fields, including the start), the first substep (kernel
+    compilation or offline-cache loading and code generation), the kernel instances this stage
+    materialised and the runtime's total, plus ``extra`` (e.g. writing)."""
+    from .mpm.backend import counters
+
+    st = dict(solver.startup)
+    k = counters()["kernels"]
+    t = {"taichi_init": st["taichi_init"], "setup": st["setup"],
+         "first_substep": round(res.first_substep_seconds, 3), "substeps": round(res.step_seconds, 3),
+         "kernels_new": None if k is None or st["kernels_before"] is None else k - st["kernels_before"],
+         "kernels_total": k, **extra}
+    log.info("fixed costs: Taichi start %.2f s, set-up %.2f s, first substep %.2f s (%s kernel instances "
+             "compiled or loaded here, %s in this process)", t["taichi_init"], t["setup"], t["first_substep"],
+             t["kernels_new"], t["kernels_total"])
+    return t
 
 
 def _stats(res: RunResult, solver: MPMSolver, extra: dict) -> dict:
@@ -229,7 +257,7 @@ def run_forward(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> 
              "stable" if res.stable else "UNSTABLE", stats["substeps_total"], res.step_seconds,
              res.first_substep_seconds, sorted(snaps), outputs["keyframes"])
     return {"stable": res.stable, "substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
-            "key_frames": sorted(snaps)}
+            "key_frames": sorted(snaps), "timings": _timings(solver, res, log)}
 
 
 # ============================================================================ final
@@ -289,4 +317,5 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
              writer.rows, stats["substeps_total"], res.step_seconds, res.first_substep_seconds, res.callback_seconds,
              outputs["frames"])
     return {"stable": res.stable, "substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
-            "held_frames": res.held_frames, "particle_substeps_per_second": stats["particle_substeps_per_second"]}
+            "held_frames": res.held_frames, "particle_substeps_per_second": stats["particle_substeps_per_second"],
+            "timings": _timings(solver, res, log, write=round(res.callback_seconds, 3))}

@@ -10,8 +10,10 @@ its ``benchmark:`` files, but the job's process is a thin client that hands the 
 socket and relays the stage's log lines and exit status.  The stage runs there exactly as it
 would in the job (``runtime.run_stage``: same outputs, same atomic writes, same errors).
 
-Which jobs use it: ``worker.stages`` (default: the GPU chain forward_sim, bgdo_update,
-final_sim, render) when ``worker.enabled`` is true, or ``auto`` and this machine has an
+Which jobs use it: ``worker.stages`` (default: every stage but ``metrics`` and the report
+jobs: prepare, cluster, fill and the parameter stages too, whose own work is a fraction of a
+second to a few seconds, less than a process start) when ``worker.enabled`` is true, or
+``auto`` and this machine has an
 NVIDIA GPU (``/proc/driver/nvidia/gpus`` lists one and CUDA_VISIBLE_DEVICES does not hide
 it).  The environment variable ``PHYSGS_WORKER`` (``0``/``1``) overrides the config.  Every
 other case runs the stage in the job's own process, as without a worker.
@@ -24,9 +26,12 @@ Lifetime and safety:
   worker's own log live in ``$PHYSGS_WORKER_DIR`` (default ``/tmp/physgs-worker-<uid>``,
   mode 0700);
 * the first job that finds none starts one (under a file lock, so concurrent jobs start one);
-  it ends after ``worker.idle_seconds`` without a job, on ``shutdown`` (the Snakefile's
-  ``onsuccess``/``onerror`` ask for it at the end of a run), and after a stage crashed with an
-  unexpected exception (a possibly broken CUDA context is never reused);
+  it ends after ``worker.idle_seconds`` (300) without a job, on ``shutdown`` (the Snakefile's
+  ``onerror`` asks for it, and ``onsuccess`` too with ``worker.stop_after_run: true``), and
+  after a stage crashed with an unexpected exception (a possibly broken CUDA context is never
+  reused).  By default it outlives a successful run by ``idle_seconds``, so that the next run
+  (a changed setting, the next scene) finds torch, Taichi's loaded kernels, gsplat and the
+  CUDA context ready; ``ping`` reports what it holds (``rss_mb``, ``cuda_reserved_mb``);
 * jobs are served one at a time (one GPU); parallel jobs queue;
 * if the client goes away mid-job (Snakemake interrupted), the worker removes the job's
   outputs after the stage, as Snakemake would treat them as incomplete anyway;
@@ -54,8 +59,9 @@ import time
 from pathlib import Path
 
 PROTOCOL = 1
-DEFAULT_STAGES = ("forward_sim", "bgdo_update", "final_sim", "render", "bench_stress")
-DEFAULT_IDLE_SECONDS = 60.0
+DEFAULT_STAGES = ("prepare", "cluster", "fill", "vlm_params", "pinned_params", "forward_sim", "bgdo_update",
+                  "final_sim", "render", "bench_stress")
+DEFAULT_IDLE_SECONDS = 300.0
 START_TIMEOUT_S = 60.0
 
 # stage name -> "module:function" (the library entry of each stage; cli._stage_fn agrees)
@@ -196,6 +202,25 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _holding() -> dict:
+    """What this idle worker holds: resident memory and torch's reserved CUDA memory (MiB; the
+    CUDA context and Taichi's device memory pool are not visible from here: the pipeline
+    benchmark samples the GPU's memory in use through NVML)."""
+    rss = None
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                rss = round(int(line.split()[1]) / 1024.0, 1)
+    reserved = None
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        with contextlib.suppress(Exception):
+            if torch.cuda.is_initialized():
+                reserved = round(torch.cuda.memory_reserved() / 2**20, 1)
+    return {"rss_mb": rss, "cuda_reserved_mb": reserved,
+            "loaded": [m for m in ("torch", "taichi", "gsplat") if m in sys.modules]}
+
+
 def _reset_peak_rss() -> None:
     with contextlib.suppress(OSError):
         Path("/proc/self/clear_refs").write_text("5")
@@ -227,9 +252,10 @@ def _run_job(req: dict, conn: socket.socket) -> tuple[int, bool]:
     t0 = time.perf_counter()
     try:
         fn = stage_function(name)
-        summary = run_stage(name, fn, req["inputs"], req["outputs"], req["cfg"], req.get("log"))
-        out.write(f"[worker {os.getpid()}] {name}: {time.perf_counter() - t0:.2f} s in the warm worker, "
-                  f"peak RSS {_peak_rss_mb():.0f} MiB\n")
+        t_imp = round(time.perf_counter() - t0, 3)
+        summary = run_stage(name, fn, req["inputs"], req["outputs"], req["cfg"], req.get("log"), import_seconds=t_imp)
+        out.write(f"[worker {os.getpid()}] {name}: {time.perf_counter() - t0:.2f} s in the warm worker "
+                  f"({t_imp:.2f} s importing its modules), peak RSS {_peak_rss_mb():.0f} MiB\n")
     except SystemExit as e:  # run_stage: the stage failed (message logged) or crashed
         rc = int(e.code) if isinstance(e.code, int) else 1
         healthy = not getattr(e, "physgs_crash", False)
@@ -281,7 +307,7 @@ def serve(path: str | os.PathLike, idle_seconds: float = DEFAULT_IDLE_SECONDS) -
                     continue
                 op = req.get("op")
                 if op == "ping":
-                    _send(conn, {"pid": os.getpid(), "jobs": jobs, "protocol": PROTOCOL})
+                    _send(conn, {"pid": os.getpid(), "jobs": jobs, "protocol": PROTOCOL, **_holding()})
                     continue
                 if op == "shutdown":
                     _close_listener(sock, path, ino)  # no new job may queue up behind this one
@@ -452,9 +478,10 @@ def dispatch(stage: str, smk) -> None:
                 sys.exit(rc)
             return
         sys.stderr.write("physgs worker: none could be started; running the stage in this process\n")
-    from .runtime import run_stage
+    from .runtime import run_stage, timed_stage_function
 
-    run_stage(stage, stage_function(stage), inputs, outputs, cfg, log)
+    fn, imp = timed_stage_function(stage, stage_function)
+    run_stage(stage, fn, inputs, outputs, cfg, log, import_seconds=imp)
 
 
 def main(argv=None) -> int:

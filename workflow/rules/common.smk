@@ -203,10 +203,19 @@ def bench_report_cfg(w):
     return bench_spec(w.scale).report_cfg()
 
 
-def stop_worker():
-    """End the warm stage worker of this run's code (worker.py); it would end by itself when idle."""
+def stop_worker(after_success=False):
+    """End the warm stage worker of this run's code (worker.py) at the end of a run; after a
+    successful one it stays for worker.idle_seconds unless worker.stop_after_run."""
     from physgs_steps import worker as W
 
+    wcfg = config.get("worker") or {}
+    if after_success and not wcfg.get("stop_after_run", False):
+        info = W.ping()
+        if info:
+            print(f"physgs: the warm stage worker (pid {info.get('pid')}, {info.get('rss_mb')} MiB resident) stays "
+                  f"for {wcfg.get('idle_seconds', W.DEFAULT_IDLE_SECONDS):g} s without a job (worker.stop_after_run "
+                  "stops it now; `python -m physgs_steps.worker stop`)", file=sys.stderr)
+        return
     if W.shutdown():
         print("physgs: stopped the warm stage worker", file=sys.stderr)
 

@@ -33,28 +33,122 @@ def canonical_plasticity(name: str, key: str = "plasticity") -> str:
 
 
 # ----------------------------------------------------------------------------- SVD
+JACOBI_SWEEPS = 6  # cyclic Jacobi sweeps of the 3x3 eigenproblem (float64 round-off after 5, tests/test_bgdo.py)
+
+
+def det3(F: torch.Tensor) -> torch.Tensor:
+    """Determinant of 3x3 matrices by cofactors (differentiable).  # F [..., 3, 3] -> [...]
+
+    Element-wise only: no LAPACK/cuSOLVER call (``torch.linalg.det`` loads cuSOLVER or MAGMA on
+    CUDA, seconds on the first call of a process)."""
+    return (F[..., 0, 0] * (F[..., 1, 1] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 1])
+            - F[..., 0, 1] * (F[..., 1, 0] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 0])
+            + F[..., 0, 2] * (F[..., 1, 0] * F[..., 2, 1] - F[..., 1, 1] * F[..., 2, 0]))
+
+
+def _mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Batched 3x3 product element-wise (no BLAS).  # [B, 3, 3] x [B, 3, 3] -> [B, 3, 3]"""
+    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+
+
+def svd3_jacobi(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """SVD of 3x3 matrices with proper rotations, by element-wise torch operations only.
+
+    V: eigenvectors of A^T A by cyclic Jacobi rotations, sorted by eigenvalue (descending),
+    det V = +1; then Givens QR of A V = U R gives U (a product of rotations, det +1) and the
+    singular values diag(R) (the last one carries the sign of det A), as in McAdams et al.,
+    "Computing the singular value decomposition of 3x3 matrices with minimal branching and
+    elementary floating point operations" (2011).  Same convention as the LAPACK path it
+    replaces (CONTRACTS.md): sig descending in magnitude, sig[2] < 0 iff det A < 0.
+
+    Args:
+        A: [B, 3, 3] float64.
+
+    Returns:
+        U [B, 3, 3], sig [B, 3], V [B, 3, 3] with A = U diag(sig) V^T.
+    """
+    n = A.shape[0]
+    eye = torch.eye(3, dtype=A.dtype, device=A.device)
+    AtA = _mm(A.transpose(-1, -2), A)  # [B, 3, 3] symmetric
+    S = [[AtA[:, i, j] for j in range(3)] for i in range(3)]  # entries [B]
+    one, zero = torch.ones_like(S[0][0]), torch.zeros_like(S[0][0])
+    Vl = [[one if i == j else zero for j in range(3)] for i in range(3)]
+    for _ in range(JACOBI_SWEEPS):
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            theta = 0.5 * torch.atan2(2.0 * S[p][q], S[q][q] - S[p][p])  # zeroes S[p][q]
+            c, s = torch.cos(theta), torch.sin(theta)
+            for M in (S, Vl):  # M <- M J (columns p, q)
+                for i in range(3):
+                    mp, mq = M[i][p], M[i][q]
+                    M[i][p], M[i][q] = c * mp - s * mq, s * mp + c * mq
+            for j in range(3):  # S <- J^T S (rows p, q)
+                mp, mq = S[p][j], S[q][j]
+                S[p][j], S[q][j] = c * mp - s * mq, s * mp + c * mq
+    V = torch.stack([torch.stack(row, -1) for row in Vl], -2)  # [B, 3, 3]
+    lam = torch.stack([S[0][0], S[1][1], S[2][2]], -1)  # [B, 3] eigenvalues sig^2
+    order = torch.argsort(lam, dim=-1, descending=True)  # [B, 3]
+    V = torch.gather(V, 2, order[:, None, :].expand(n, 3, 3))
+    V[:, :, 2] = torch.where((det3(V) < 0)[:, None], -V[:, :, 2], V[:, :, 2])
+    R = _mm(A, V)  # [B, 3, 3] -> upper triangular by Givens rotations from the left
+    U = eye.expand(n, 3, 3).clone()
+    tiny = torch.finfo(A.dtype).tiny
+    for p, q, col in ((0, 1, 0), (0, 2, 0), (1, 2, 1)):
+        a, b = R[:, p, col], R[:, q, col]
+        r = torch.sqrt(a * a + b * b)
+        ok = r > tiny
+        c = torch.where(ok, a / torch.where(ok, r, 1.0), 1.0)[:, None]
+        s = torch.where(ok, b / torch.where(ok, r, 1.0), 0.0)[:, None]
+        Rp, Rq = R[:, p, :].clone(), R[:, q, :].clone()
+        R[:, p, :], R[:, q, :] = c * Rp + s * Rq, -s * Rp + c * Rq
+        Up, Uq = U[:, :, p].clone(), U[:, :, q].clone()
+        U[:, :, p], U[:, :, q] = c * Up + s * Uq, -s * Up + c * Uq
+    return U, torch.diagonal(R, dim1=-2, dim2=-1).clone(), V
+
+
+def svd3_lapack(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`svd3_jacobi`'s result from ``torch.linalg.svd`` (LAPACK; cuSOLVER on CUDA) and
+    the sign fix.  # A [B, 3, 3] float64 -> U [B, 3, 3], sig [B, 3], V [B, 3, 3]"""
+    U, S, Vh = torch.linalg.svd(A)
+    V = Vh.transpose(-1, -2).clone()
+    U = U.clone()
+    fu = det3(U) < 0
+    fv = det3(V) < 0
+    U[..., :, 2] = torch.where(fu[:, None], -U[..., :, 2], U[..., :, 2])
+    V[..., :, 2] = torch.where(fv[:, None], -V[..., :, 2], V[..., :, 2])
+    S = S.clone()
+    S[:, 2] = torch.where(fu ^ fv, -S[:, 2], S[:, 2])
+    return U, S, V
+
+
+def svd3_method(device: torch.device) -> str:
+    """``jacobi`` or ``lapack``: ``PHYSGS_SVD3`` when set, else Jacobi on CUDA (no cuSOLVER to
+    load: its first call costs seconds per process; ~10 kernel launches per rotation instead)
+    and LAPACK on the CPU (faster there)."""
+    import os
+
+    want = os.environ.get("PHYSGS_SVD3", "auto").strip().lower()
+    if want in ("jacobi", "lapack"):
+        return want
+    return "jacobi" if device.type == "cuda" else "lapack"
+
+
 class _SVD3(torch.autograd.Function):
     """Batched 3x3 SVD ``F = U diag(sig) V^T`` with U, V proper rotations (det +1).
 
-    The forward pass is ``torch.linalg.svd`` (in float64) followed by the sign fix of
-    CONTRACTS.md (a reflection moves into the last singular value, which may then be
-    negative). The backward pass is the closed-form SVD derivative with the factor
-    ``1 / (s_j^2 - s_i^2)`` kept finite for repeated singular values (F = I is the most
-    common state in a simulation; torch's own backward returns NaN there).
+    The forward pass runs in float64: :func:`svd3_jacobi` on CUDA (element-wise torch only: no
+    cuSOLVER, whose loading made the first BGDO update of a GPU process seconds slower),
+    :func:`svd3_lapack` on the CPU (``torch.linalg.svd`` plus the sign fix of CONTRACTS.md, a
+    reflection moving into the last singular value); they agree to float64 round-off
+    (tests/test_bgdo.py; ``PHYSGS_SVD3=jacobi|lapack`` picks one). The backward pass
+    is the closed-form SVD derivative with the factor ``1 / (s_j^2 - s_i^2)`` kept finite for
+    repeated singular values (F = I is the most common state in a simulation; torch's own
+    backward returns NaN there).
     """
 
     @staticmethod
     def forward(ctx, F):  # F [B, 3, 3]
         A = F.detach().to(torch.float64)
-        U, S, Vh = torch.linalg.svd(A)
-        V = Vh.transpose(-1, -2).clone()
-        U = U.clone()
-        fu = torch.linalg.det(U) < 0
-        fv = torch.linalg.det(V) < 0
-        U[..., :, 2] = torch.where(fu[:, None], -U[..., :, 2], U[..., :, 2])
-        V[..., :, 2] = torch.where(fv[:, None], -V[..., :, 2], V[..., :, 2])
-        S = S.clone()
-        S[:, 2] = torch.where(fu ^ fv, -S[:, 2], S[:, 2])
+        U, S, V = (svd3_jacobi if svd3_method(A.device) == "jacobi" else svd3_lapack)(A)
         U, S, V = U.to(F.dtype), S.to(F.dtype), V.to(F.dtype)
         ctx.save_for_backward(U, S, V)
         return U, S, V
@@ -112,7 +206,7 @@ def kirchhoff(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: str) 
     model = canonical_elasticity(model)
     B = F.shape[0]
     I = _eye(B, F)
-    J = torch.linalg.det(F)
+    J = det3(F)
     if model == "fixed_corotated":
         U, sig, V = svd3(F)
         R = U @ V.transpose(-1, -2)
@@ -203,11 +297,11 @@ def return_map(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, pp: Plastic
         return F
     I = _eye(B, F)
     if model == "j_clamp":
-        J = torch.linalg.det(F)
+        J = det3(F)
         Jc = torch.minimum(torch.maximum(J, pp.j_min), pp.j_max)
         return _signed_cbrt(Jc)[:, None, None] * I
     if model == "fluid":
-        J = torch.linalg.det(F)
+        J = det3(F)
         return _signed_cbrt(J)[:, None, None] * I
     U, sig, V = svd3(F)
     eps = torch.log(torch.clamp(sig, min=SIG_FLOOR))

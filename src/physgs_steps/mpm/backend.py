@@ -16,7 +16,7 @@ import taichi as ti
 from ..errors import ConfigError
 from ..runtime import cache_dir
 
-_state: dict = {"arch": None, "prog": None}
+_state: dict = {"arch": None, "prog": None, "init_seconds": 0.0, "inits": 0}
 _log = logging.getLogger("physgs.mpm")
 
 
@@ -27,6 +27,9 @@ def _current_prog():
 
 
 def _init(arch) -> str:
+    import time
+
+    t0 = time.perf_counter()
     ti.init(arch=arch, default_fp=ti.f32, default_ip=ti.i32, offline_cache=True,
             offline_cache_file_path=str(cache_dir("taichi")), log_level=ti.WARN,
             cpu_max_num_threads=os.cpu_count() or 1,
@@ -35,7 +38,7 @@ def _init(arch) -> str:
 
     got = impl.current_cfg().arch
     name = "cuda" if got == ti.cuda else "cpu"
-    _state.update(arch=name, prog=_current_prog())
+    _state.update(arch=name, prog=_current_prog(), init_seconds=time.perf_counter() - t0, inits=_state["inits"] + 1)
     from . import kernels
 
     kernels.build.cache_clear()
@@ -69,6 +72,21 @@ def _cuda_built() -> bool:
         return bool(ti._lib.core.with_cuda())
     except AttributeError:  # pragma: no cover - very old/new Taichi
         return True
+
+
+def counters() -> dict:
+    """Start-up figures of this process's Taichi: ``inits`` (ti.init calls made here),
+    ``init_seconds`` (the last one's), ``kernels`` (compiled kernel instances of the live
+    runtime: each is compiled, or loaded from the offline cache and code-generated, once per
+    process; a stage's increase is what it paid for)."""
+    kernels = 0
+    try:
+        from taichi.lang import impl
+
+        kernels = sum(len(getattr(k, "compiled_kernels", ())) for k in impl.get_runtime().kernels)
+    except Exception:  # pragma: no cover - Taichi internals moved
+        kernels = None
+    return {"inits": _state["inits"], "init_seconds": _state["init_seconds"], "kernels": kernels}
 
 
 def current_arch() -> str | None:

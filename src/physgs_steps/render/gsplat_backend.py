@@ -15,6 +15,7 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .cameras import Camera, stack_cameras
@@ -73,9 +74,10 @@ def render_frames(frames: list[Gaussians], cameras: list[Camera], background, sh
     vm, ks = stack_cameras(cameras)
     viewmats = torch.as_tensor(vm, dtype=torch.float32, device=dev)[:, None]  # [B, 1, 4, 4]
     Ks = torch.as_tensor(ks, dtype=torch.float32, device=dev)[:, None]  # [B, 1, 3, 3]
+    # camera centres on the host (a 4x4 inverse on CUDA would load cuSOLVER, seconds once per process)
+    centres = torch.as_tensor(np.linalg.inv(np.asarray(vm, np.float64))[:, :3, 3], dtype=torch.float32, device=dev)
     cols = []
-    for g, cam, vmat in zip(frames, cameras, viewmats[:, 0]):
-        campos = torch.linalg.inv(vmat)[:3, 3]
+    for g, campos in zip(frames, centres):
         cols.append(view_colors(g.means, g.sh, campos, sh_degree, g.rotations))
     colors = torch.stack(cols)[:, None]  # [B, 1, N, 3]
     means = torch.stack([g.means for g in frames])  # [B, N, 3]
@@ -104,7 +106,7 @@ def render_views(g: Gaussians, cameras: list[Camera], background, sh_degree: int
     vm, ks = stack_cameras(cameras)
     viewmats = torch.as_tensor(vm, dtype=torch.float32, device=dev)
     Ks = torch.as_tensor(ks, dtype=torch.float32, device=dev)
-    campos = torch.linalg.inv(viewmats)[:, :3, 3]
+    campos = torch.as_tensor(np.linalg.inv(np.asarray(vm, np.float64))[:, :3, 3], dtype=torch.float32, device=dev)
     colors = torch.stack([view_colors(g.means, g.sh, c, sh_degree, g.rotations) for c in campos])  # [C, N, 3]
     bg = torch.as_tensor(background, dtype=torch.float32, device=dev).expand(len(cameras), 3).contiguous()
     w, h = cameras[0].width, cameras[0].height

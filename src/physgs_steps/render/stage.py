@@ -221,8 +221,16 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     rcfg = cfg["render"]
     ccfg = camera_config(cfg.get("scene") or {})
     settings = settings_from_config(rcfg)
+    t0 = time.perf_counter()
+    had_gsplat = "gsplat" in __import__("sys").modules
     backend, why = resolve_backend(rcfg["backend"], cfg.get("device", "auto"))
-    log.info("backend %s (%s)", backend, why)
+    timings = {"backend": round(time.perf_counter() - t0, 3), "gsplat_was_loaded": had_gsplat, "cuda_start": None}
+    if backend == "gsplat":
+        from ..runtime import cuda_start_seconds
+
+        timings["cuda_start"] = cuda_start_seconds(torch)
+    log.info("backend %s (%s; %.2f s to find it%s)", backend, why, timings["backend"],
+             "" if timings["cuda_start"] is None else f", first CUDA call {timings['cuda_start']:.2f} s")
     if backend == "cpu":
         threads = cpu_threads(rcfg.get("threads"), log)
         if rcfg["cpu_compositor"] == "taichi":
@@ -237,18 +245,33 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
     renderer = Renderer(backend, settings)
     dev = renderer.device
 
+    t0 = time.perf_counter()
     transform = load_transform(inputs["transform"])
     smap = SourceMap.from_transform(transform)
     scene = load_gaussians(inputs["scene"], log)
     carrier = load_carrier(inputs["carrier"], scene.n)
+    timings["read_scene"] = round(time.perf_counter() - t0, 3)
     with FinalFrames(inputs["frames"]) as frames:
         return _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, carrier, frames, dev,
-                           log, t_start, scene_size(transform))
+                           log, t_start, scene_size(transform), timings)
+
+
+def frames_per_call(batch: int, batch_gaussians: int, n_gaussians: int, batch_pixels: int | None = None,
+                    pixels: int = 1) -> int:
+    """gsplat frames per call: ``batch`` at most, at most ``batch_gaussians`` gaussians and
+    ``batch_pixels`` pixels summed over the call's frames (at least one frame): the bound on the
+    renderer's GPU memory (per-gaussian projections and tile lists, per-pixel images)."""
+    n = min(int(batch), int(batch_gaussians) // max(int(n_gaussians), 1))
+    if batch_pixels is not None:
+        n = min(n, int(batch_pixels) // max(int(pixels), 1))
+    return max(1, n)
 
 
 def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene, carrier, frames, dev, log,
-                t_start, size: float) -> dict:
+                t_start, size: float, timings: dict) -> dict:
+    t0 = time.perf_counter()
     rest = rest_gaussians(scene, smap, dev)
+    timings["rest_gaussians"] = round(time.perf_counter() - t0, 3)
     t0 = time.perf_counter()
     cmap = CarrierMap.build(carrier, frames.particle_index, scene.means, frames.x(0), dev)
     index = cmap.rows
@@ -256,6 +279,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     log.info("carrier: %d gaussians move with %d stored particles (%s, %d per gaussian), %d drawn at rest; %.2f s",
              index.numel(), frames.m, "identity" if cmap.identity else "budget", cmap.index.shape[1],
              static_rows.size, time.perf_counter() - t0)
+    timings["carrier"] = round(time.perf_counter() - t0, 3)
     sel = list(range(0, frames.n_frames, int(rcfg["every_nth"])))
     degree = renderer.degree(rest)
     log.info("%d gaussians, %d simulated, %d of %d frames to render (%d distinct stored states), SH degree %d",
@@ -277,14 +301,20 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     frame_dir = None
     if rcfg["png_frames"]:
         frame_dir = FrameDir(outputs.get("frames") or Path(outputs["video"]).parent / "frames")
-    batch = int(rcfg["batch"]) if backend == "gsplat" else 1
-    t_render = t_deform = 0.0
+    batch = frames_per_call(rcfg["batch"], rcfg["batch_gaussians"], scene.n, rcfg["batch_pixels"],
+                            width * height) if backend == "gsplat" else 1
+    if backend == "gsplat" and batch < int(rcfg["batch"]):
+        log.info("%d frames per gsplat call (render.batch %d, capped by render.batch_gaussians %d at %d gaussians "
+                 "and render.batch_pixels %d at %dx%d)", batch, int(rcfg["batch"]), int(rcfg["batch_gaussians"]),
+                 scene.n, int(rcfg["batch_pixels"]), width, height)
+    t_render = t_deform = t_read = 0.0
     next_log = 0.1
     prev = None      # (stored row, gaussians, camera) of the previous frame
     prev_img = None  # (image, alpha) of the previous frame
     reused = {"states": 0, "images": 0}
     try:
-        with VideoWriter(outputs["video"], width, height, rcfg["fps"], rcfg["crf"]) as vw:
+        vw = VideoWriter(outputs["video"], width, height, rcfg["fps"], rcfg["crf"], rcfg.get("preset", "medium"))
+        with vw:
             for b0 in range(0, len(sel), batch):
                 ids = sel[b0:b0 + batch]
                 gs, copy = [], []  # copy[j]: frame j repeats the previous frame's image
@@ -298,6 +328,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                     else:
                         t0 = time.perf_counter()
                         x, F = frames.x(t), frames.F(t)
+                        t_read += time.perf_counter() - t0
                         bad = check_frame(t, x, F, rcfg["on_nonfinite"])
                         if bad is not None:
                             log.warning("frame %d: %d stored particles with NaN/inf: the gaussians they carry are hidden",
@@ -356,8 +387,15 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
         log.warning("%d frames have gaussians behind the near plane (clipped), e.g. frame %d (%.0f%%)",
                     len(clipped), clipped[0][0], 100 * clipped[0][1])
 
+    t0 = time.perf_counter()
     sheet = contact_sheet(sheet_imgs, sheet_labels, rcfg["contact_sheet"]["columns"], rcfg["contact_sheet"]["tile_width"])
     write_png(outputs["contact_sheet"], sheet)
+    timings.update({"frames_per_call": batch, "read_frames": round(t_read, 3), "deform": round(t_deform - t_read, 3),
+                    "rasterize": round(t_render, 3), "encode_wait": round(vw.wait_seconds, 3),
+                    "encode_finish": round(vw.close_seconds, 3), "contact_sheet": round(time.perf_counter() - t0, 3)})
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        timings["cuda_peak_allocated_mb"] = round(torch.cuda.max_memory_allocated() / 2**20, 1)
+    log.info("fixed costs and parts: %s", timings)
     seconds = time.perf_counter() - t_start
     report = {
         "backend": backend, "backend_reason": why, "device": str(dev),
@@ -371,14 +409,14 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
         "coverage": {"min": min(coverage), "mean": float(np.mean(coverage)), "max": max(coverage)},
         "empty_frames": empty, "clipped_frames": clipped, "hidden_nonfinite": hidden,
         "render_seconds": round(t_render, 3), "render_frames_per_second": round(len(sel) / max(t_render, 1e-9), 2),
-        "seconds": round(seconds, 3),
+        "seconds": round(seconds, 3), "timings": timings,
         "outputs": {k: str(v) for k, v in outputs.items()},
         "png_frames": str(frame_dir.path) if frame_dir is not None else None,
     }
     write_json(outputs["report"], report)
     log.info("wrote %s (%d frames, %dx%d, %.3g fps), %s, %s in %.1f s (%.1f s rendering)", outputs["video"], len(sel),
              width, height, rcfg["fps"], outputs["contact_sheet"], outputs["report"], seconds, t_render)
-    return {"frames": len(sel), "render_seconds": round(t_render, 3), "backend": backend}
+    return {"frames": len(sel), "render_seconds": round(t_render, 3), "backend": backend, "timings": timings}
 
 
 def _ranges(frames: list[int]) -> str:

@@ -32,10 +32,20 @@ def pad_even(img: np.ndarray) -> np.ndarray:
 class VideoWriter:
     """Stream frames into an H.264 mp4; the file appears only when :meth:`close` succeeds.
 
+    Frames go to ffmpeg from a background thread through a bounded queue (``queue`` frames), so
+    the caller renders the next frames while ffmpeg encodes (a pipe write blocks while the
+    encoder is behind; at 1080p x264 is slower than gsplat).  ``wait_seconds`` is the time
+    :meth:`append` spent blocked on a full queue and ``close_seconds`` the encoding left after the
+    last frame: together, what encoding added to the stage.
+
     Use as a context manager; an exception inside the block leaves no file behind.
     """
 
-    def __init__(self, path, width: int, height: int, fps: float, crf: int = 18):
+    def __init__(self, path, width: int, height: int, fps: float, crf: int = 18, preset: str = "medium",
+                 queue: int = 8):
+        import queue as _queue
+        import threading
+
         import imageio_ffmpeg
 
         if width < 1 or height < 1:
@@ -45,30 +55,74 @@ class VideoWriter:
         self._atomic = atomic_path(self.path)
         self._tmp = self._atomic.__enter__()
         self.n_frames = 0
+        self.wait_seconds = 0.0
+        self.close_seconds = 0.0
         self._gen = imageio_ffmpeg.write_frames(
             str(self._tmp), self.size, pix_fmt_in="rgb24", pix_fmt_out="yuv420p", fps=float(fps),
             codec="libx264", quality=None, macro_block_size=2, ffmpeg_log_level="error",
-            output_params=["-crf", str(int(crf)), "-preset", "medium", "-movflags", "+faststart"])
+            output_params=["-crf", str(int(crf)), "-preset", str(preset), "-movflags", "+faststart"])
         self._gen.send(None)
+        self._q: _queue.Queue = _queue.Queue(maxsize=max(1, int(queue)))
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._feed, name="physgs-video", daemon=True)
+        self._thread.start()
+
+    def _feed(self) -> None:
+        while True:
+            img = self._q.get()
+            if img is None:
+                return
+            if self._error is None:
+                try:
+                    self._gen.send(img)
+                except BaseException as e:  # ffmpeg died: reported by the next append/close
+                    self._error = e
+
+    def _check(self) -> None:
+        if self._error is not None:
+            raise RenderError(f"{self.path}: the video encoder failed: {self._error}")
 
     def append(self, img: np.ndarray) -> None:
         """Add one [H, W, 3] uint8 frame (the size given at construction, before even padding)."""
+        import time
+
         img = pad_even(np.ascontiguousarray(img, dtype=np.uint8))
         if (img.shape[1], img.shape[0]) != self.size:
             raise RenderError(f"{self.path}: frame of size {img.shape[1]}x{img.shape[0]}, video is {self.size[0]}x{self.size[1]}")
-        self._gen.send(img)
+        self._check()
+        t0 = time.perf_counter()
+        self._q.put(img)
+        self.wait_seconds += time.perf_counter() - t0
         self.n_frames += 1
+
+    def _stop_thread(self) -> None:
+        if self._thread.is_alive():
+            self._q.put(None)
+            self._thread.join()
 
     def close(self) -> None:
         """Finish encoding and move the file into place."""
+        import time
+
         if self.n_frames == 0:
             self.abort()
             raise RenderError(f"{self.path}: no frames were rendered")
+        t0 = time.perf_counter()
+        self._stop_thread()
+        if self._error is not None:
+            self.abort()
+            raise RenderError(f"{self.path}: the video encoder failed: {self._error}")
         self._gen.close()
+        self.close_seconds = time.perf_counter() - t0
         self._atomic.__exit__(None, None, None)
 
     def abort(self) -> None:
         """Stop encoding and delete the partial file."""
+        self._error = self._error or RenderError("aborted")  # the feeder drops what is still queued
+        try:
+            self._stop_thread()
+        except Exception:
+            pass
         try:
             self._gen.close()
         except Exception:  # ffmpeg may already be gone; the partial file is removed below
