@@ -7,6 +7,15 @@ P2G, float atomics, gravity and slip walls), on the same particles in the same p
     python benchmarks/bench_mpm.py --arch cpu --sizes 30000 --seconds 5
     python benchmarks/bench_mpm.py --arch cuda --sizes 300000 1000000 --warp-solver PhysGaussian/mpm_solver_warp
     python benchmarks/bench_mpm.py --arch cuda --sizes 1000000 --profile     # Taichi kernel profiler per pass
+    python benchmarks/bench_mpm.py --arch cuda --sizes 300000 1000000 --p2g atomic coarsened coarsened:K=32
+
+P2G variants (``--p2g``, src/physgs_steps/mpm/p2g_sorted.py), each measured on its own solver
+from the same particles after the default solver: ``atomic`` (one float atomic per particle
+and node, the transfer before coarsening) and ``coarsened`` (runs of particles with the same
+stencil base summed in registers, one write per run; device re-sort by stencil base), with
+options ``:K=<particles per thread>`` (``K=cell``: a thread per cell of the last sort),
+``:N=<substeps between re-sorts>``, ``:grid=private|atomic`` (CPU: per-thread grids, the default there, or one grid with atomics
+as on CUDA).  A table per size gives each variant's rate and its ratio to ``atomic``.
 
 Particles fill a box in random order (as gaussians come from a .ply); the textbook kernel gets
 them in that order and, for reference, sorted by cell as physgs stores them.  The figure is
@@ -25,7 +34,30 @@ import time
 import numpy as np
 
 ROWS = "ROWS "
-GRID_FOR = {30_000: 32, 300_000: 64, 1_000_000: 96}
+GRID_FOR = {30_000: 32, 100_000: 48, 300_000: 64, 1_000_000: 96}
+DEFAULT_VARIANTS = ["atomic", "coarsened", "coarsened:K=8", "coarsened:K=32", "coarsened:K=cell",
+                    "coarsened:N=4", "coarsened:N=64"]
+
+
+def parse_variant(text: str) -> dict:
+    """``coarsened:K=32:N=4:grid=atomic`` -> solver keyword arguments (and the label)."""
+    from physgs_steps.mpm import p2g_sorted as P2G
+
+    name, *opts = text.split(":")
+    if name not in ("atomic", "coarsened"):
+        raise SystemExit(f"--p2g {text!r}: the mode must be atomic or coarsened")
+    kw = {"p2g": name, "run_length": P2G.RUN_LENGTH, "resort_every": P2G.RESORT_EVERY}
+    for o in opts:
+        key, _, value = o.partition("=")
+        if key == "K":
+            kw["run_length"] = "cell" if value == "cell" else int(value)
+        elif key == "N":
+            kw["resort_every"] = int(value)
+        elif key == "grid" and value in ("private", "atomic"):
+            kw["grid_mode"] = value
+        else:
+            raise SystemExit(f"--p2g {text!r}: unknown option {o!r} (K=<int>, N=<int>, grid=private|atomic)")
+    return kw
 
 
 @functools.lru_cache(maxsize=None)
@@ -127,7 +159,70 @@ def _rate(step, P: int, seconds: float):
     return P * n / (time.perf_counter() - t0), n
 
 
-def bench_arch(arch: str, sizes: list, seconds: float) -> list:
+def _profile(step, title: str) -> None:
+    """Taichi's kernel profiler over 20 substeps (when --profile)."""
+    if os.environ.get("PHYSGS_TI_PROFILER") != "1":
+        return
+    import taichi as ti
+
+    ti.profiler.clear_kernel_profiler_info()
+    for _ in range(20):
+        step()
+    ti.sync()
+    print(f"--- Taichi kernel profiler, {title}, 20 substeps (offloaded tasks):", flush=True)
+    ti.profiler.print_kernel_profiler_info("count")
+    ti.profiler.clear_kernel_profiler_info()
+
+
+def bench_variants(arch: str, x: np.ndarray, G: int, m, dt: float, variants: list, seconds: float,
+                   textbook_sorted: float, rounds: int = 3) -> list:
+    """Rates of the P2G variants on the particles ``x`` (a solver each, all loaded first), measured
+    in ``rounds`` interleaved rounds of ``seconds / rounds`` each (so that a machine's load or
+    clock changes hit every variant alike); the best round counts.  Prints a table."""
+    from physgs_steps.mpm import Dynamics, MPMSolver
+    from physgs_steps.mpm import p2g_sorted as P2G
+
+    P = len(x)
+    solvers = []
+    for text in variants:
+        s = MPMSolver([m], n_grid=G, dynamics=Dynamics.free(), backend=arch, **parse_variant(text))
+        s.set_particles(x, np.full(P, 0.4 ** 3 / P), np.zeros(P, int))
+        s.substep(dt)  # compile / warm up
+        solvers.append(s)
+    rates = [[] for _ in solvers]
+    counts = [0] * len(solvers)
+    for _ in range(max(1, rounds)):
+        for i, s in enumerate(solvers):
+            rate, n = _rate(lambda: s.substep(dt), P, seconds / max(1, rounds))
+            rates[i].append(rate)
+            counts[i] += n
+    rows = []
+    for text, s, rs, n in zip(variants, solvers, rates, counts):
+        _profile(lambda: s.substep(dt), f"p2g {text}, P={P}")
+        rows.append({"arch": s.arch, "particles": P, "n_grid": G, "variant": text, "p2g": s.p2g,
+                     "run_length": ("cell" if s.run_length == P2G.CELL else s.run_length)
+                     if s.p2g == "coarsened" and not s.private_grid else None,
+                     "resort_every": s.resort_every if s.p2g == "coarsened" else None,
+                     "grid_mode": "private" if s.private_grid else "atomic", "rate": max(rs),
+                     "rate_median": float(np.median(rs)), "rates": rs, "resorts": s.sort_generation,
+                     "substeps_measured": n})
+    del solvers, s
+    ref = {r["grid_mode"]: r["rate"] for r in rows if r["p2g"] == "atomic"}  # per grid mode
+    print(f"P2G variants, {arch} P={P} grid {G}^3, particle-substeps/s, best of {rounds} interleaved rounds "
+          f"(vs atomic: against the atomic variant of the same grid mode):", flush=True)
+    print(f"  {'variant':28s} {'grid':8s} {'K':>4s} {'N':>4s} {'rate':>10s} {'median':>10s} {'vs atomic':>10s} "
+          f"{'vs textbook':>12s}")
+    for r in rows:
+        r["vs_atomic"] = r["rate"] / ref[r["grid_mode"]] if r["grid_mode"] in ref else None
+        r["vs_textbook_sorted"] = r["rate"] / textbook_sorted
+        print(f"  {r['variant']:28s} {r['grid_mode']:8s} {r['run_length'] or '-':>4} {r['resort_every'] or '-':>4} "
+              f"{r['rate']:10.3g} {r['rate_median']:10.3g} {r['vs_atomic'] or float('nan'):10.2f} "
+              f"{r['vs_textbook_sorted']:12.2f}",
+              flush=True)
+    return rows
+
+
+def bench_arch(arch: str, sizes: list, seconds: float, variants: list | None = None, rounds: int = 3) -> list:
     from physgs_steps.mpm import Dynamics, Material, MPMSolver
 
     m = Material("fixed_corotated", "identity", E=1.0e5, nu=0.3, density=1000.0, name="jelly")
@@ -144,25 +239,19 @@ def bench_arch(arch: str, sizes: list, seconds: float) -> list:
         tb = Textbook(x, G, 1.0, m.mu, m.lam, p_vol, p_vol * m.density)
         tbs = Textbook(x[s._perm], G, 1.0, m.mu, m.lam, p_vol, p_vol * m.density)
         r_ours, n_ours = _rate(lambda: s.substep(dt), P, seconds)
-        if os.environ.get("PHYSGS_TI_PROFILER") == "1":
-            import taichi as ti
-
-            ti.profiler.clear_kernel_profiler_info()
-            for _ in range(20):
-                s.substep(dt)
-            ti.sync()
-            print(f"--- Taichi kernel profiler, physgs substep, P={P}, 20 substeps (offloaded tasks):", flush=True)
-            ti.profiler.print_kernel_profiler_info("count")
-            ti.profiler.clear_kernel_profiler_info()
+        _profile(lambda: s.substep(dt), f"physgs substep (p2g {s.p2g}), P={P}")
         r_tb, _ = _rate(lambda: tb.substep(dt), P, seconds)
         r_tbs, _ = _rate(lambda: tbs.substep(dt), P, seconds)
         row = {"arch": s.arch, "particles": P, "n_grid": G, "physgs": r_ours, "textbook": r_tb,
                "textbook_sorted": r_tbs, "ratio": r_ours / r_tb, "ratio_vs_sorted": r_ours / r_tbs,
-               "substeps_measured": n_ours, "threads": os.cpu_count()}
-        print(f"{s.arch:5s} P={P:>8d} grid {G}^3: physgs {r_ours:.3g}  textbook {r_tb:.3g} "
+               "p2g": s.p2g, "substeps_measured": n_ours, "threads": os.cpu_count()}
+        print(f"{s.arch:5s} P={P:>8d} grid {G}^3: physgs (p2g {s.p2g}) {r_ours:.3g}  textbook {r_tb:.3g} "
               f"(sorted input {r_tbs:.3g}) particle-substeps/s  ratio {row['ratio']:.2f} "
               f"({row['ratio_vs_sorted']:.2f} vs sorted)", flush=True)
         out.append(row)
+        del s, tb, tbs
+        if variants:
+            out += bench_variants(arch, x, G, m, dt, variants, seconds, r_tbs, rounds)
     return out
 
 
@@ -186,12 +275,18 @@ def _summary(rows: list) -> None:
         d = by_size.setdefault(r["particles"], {})
         if "solver" in r:
             d[r["solver"]] = r["rate"]
+        elif "variant" in r:
+            d[f"p2g {r['variant']}"] = r["rate"]
         else:
             d.update(physgs=r["physgs"], textbook=r["textbook"], textbook_sorted=r["textbook_sorted"])
     for P, d in sorted(by_size.items()):
-        print(f"SUMMARY cuda P={P}: " + ", ".join(f"{k} {v:.3g}" for k, v in d.items()) +
-              (f"; physgs / warp no-sync {d['physgs'] / d['warp_no_sync']:.2f}" if "warp_no_sync" in d and "physgs" in d
-               else ""), flush=True)
+        line = f"SUMMARY cuda P={P}: " + ", ".join(f"{k} {v:.3g}" for k, v in d.items())
+        if "warp_no_sync" in d and "physgs" in d:
+            line += f"; physgs / warp no-sync {d['physgs'] / d['warp_no_sync']:.2f}"
+            best = max((k for k in d if k.startswith("p2g ")), key=d.get, default=None)
+            if best:
+                line += f"; best variant ({best[4:]}) / warp no-sync {d[best] / d['warp_no_sync']:.2f}"
+        print(line, flush=True)
 
 
 def main() -> None:
@@ -206,6 +301,12 @@ def main() -> None:
     ap.add_argument("--warp-solver", metavar="DIR",
                     help="also run PhysGaussian's warp solver from DIR (its mpm_solver_warp folder) on CUDA, "
                          "as written and without host syncs (benchmarks/bench_mpm_warp.py; needs warp-lang)")
+    ap.add_argument("--p2g", nargs="*", metavar="VARIANT", default=DEFAULT_VARIANTS,
+                    help="P2G variants measured after the default solver, each on a fresh solver: atomic | "
+                         "coarsened, with options :K=<run length> :N=<substeps between re-sorts> "
+                         ":grid=private|atomic (default: %(default)s; none: --p2g with no value)")
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="interleaved rounds of the --p2g variants (each gets --seconds in all; best round counts)")
     ap.add_argument("--emit-rows", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.profile:
@@ -214,7 +315,7 @@ def main() -> None:
         rows = []
         for arch in ["cpu"] + (["cuda"] if _cuda_available() else []):
             cmd = [sys.executable, __file__, "--arch", arch, "--seconds", str(a.seconds), "--sizes",
-                   *map(str, a.sizes), "--emit-rows"]
+                   *map(str, a.sizes), "--emit-rows", "--rounds", str(a.rounds), "--p2g", *a.p2g]
             r = subprocess.run(cmd, capture_output=True, text=True)
             for line in r.stdout.splitlines():
                 if line.startswith(ROWS):
@@ -226,7 +327,7 @@ def main() -> None:
         if "cuda" not in {r["arch"] for r in rows}:
             print("ti.cuda: not available on this machine")
     else:
-        rows = bench_arch(a.arch, a.sizes, a.seconds)
+        rows = bench_arch(a.arch, a.sizes, a.seconds, a.p2g, a.rounds)
         if a.emit_rows:
             print(ROWS + json.dumps(rows))
             return
@@ -241,7 +342,7 @@ def main() -> None:
                 print(line, flush=True)
         if r.returncode != 0:
             print(r.stderr[-3000:], file=sys.stderr)
-        _summary(rows)
+    _summary(rows)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=2)

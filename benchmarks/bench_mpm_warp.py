@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-GRID_FOR = {30_000: 32, 300_000: 64, 1_000_000: 96}
+GRID_FOR = {30_000: 32, 100_000: 48, 300_000: 64, 1_000_000: 96}
 
 
 class _NoSyncTimer(contextlib.ContextDecorator):

@@ -17,6 +17,7 @@ import torch
 from physgs_steps import bgdo as B
 from physgs_steps import config as C
 from physgs_steps.errors import ConfigError, InputError
+from physgs_steps.mpm.colliders import FRONT_BAND, TOUCH
 
 LOG = logging.getLogger("test_bgdo")
 PP = {"yield_stress": 300.0, "friction_angle": 30.0, "cohesion": 0.01, "j_min": 0.95, "j_max": 1.05}
@@ -101,7 +102,7 @@ def np_return_map(F, mu, lam, pp, model):
     return U @ np.diag(np.exp(e + c)) @ V.T
 
 
-def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), boundary="slip", bound=3):
+def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), boundary="slip", margin=0.1):
     """Loop-by-loop MLS-MPM step of CONTRACTS.md in float64; arrays in domain units.
     models: per particle (elasticity, plasticity, plasticity params); E, nu, rho per particle."""
     P = x.shape[0]
@@ -127,22 +128,60 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
             node = tuple(base + np.array(o))
             grid_v[node] = grid_v.get(node, 0) + weight * (p_mass * (vs[p] - 0.5 * dt * np.asarray(g, float)) + affine @ dpos)
             grid_m[node] = grid_m.get(node, 0) + weight * p_mass
+    # domain walls: planes `margin` inside the domain faces, acting on the nodes of particles
+    # that touch them, with velocities on the line from the wall to the mirror point (colliders.py)
+    walls = [(a, sg, margin * L if sg > 0 else L - margin * L) for a in range(3) for sg in (1.0, -1.0)]
+    engaged = set()
+    for p in range(P):
+        if min(sg * (xs[p][a] - pos) for a, sg, pos in walls) < TOUCH * dx:
+            base = stencils[p][0]
+            engaged |= {tuple(base + np.array(o)) for o in itertools.product(range(3), repeat=3)}
+    pre = {}
+    for node, m in grid_m.items():
+        pre[node] = grid_v[node] / m + dt * np.asarray(g, float) if m > 0 else np.zeros(3)
+
+    def mirror(xm):
+        b0 = np.floor(xm / dx).astype(int)
+        fr = xm / dx - b0
+        acc, ws = np.zeros(3), 0.0
+        for o in itertools.product(range(2), repeat=3):
+            nd = tuple(b0 + np.array(o))
+            if grid_m.get(nd, 0.0) > 0:
+                wgt = np.prod([fr[a] if o[a] else 1 - fr[a] for a in range(3)])
+                acc += wgt * pre[nd]
+                ws += wgt
+        return (acc / ws) if ws > 1e-6 else None
+
     for node, m in grid_m.items():
         if m <= 0:
             grid_v[node] = np.zeros(3)
             continue
-        gv = grid_v[node] / m + dt * np.asarray(g, float)
-        for d in range(3):
-            if node[d] < bound:
+        gv = pre[node].copy()
+        xn = np.array(node) * dx
+        for a, sg, pos in walls:
+            phi = sg * (xn[a] - pos)
+            if phi >= FRONT_BAND * dx or node not in engaged:  # behind, or in front within the band
+                continue
+            nrm = np.zeros(3)
+            nrm[a] = sg
+            d = (FRONT_BAND + 1.0) * dx  # the mirror point lies d in front of the wall
+            vm = mirror(xn + (d - phi) * nrm) if phi > -2 * dx else None
+            q = phi / d
+            if vm is None:  # plain rule
                 if boundary == "sticky":
                     gv = np.zeros(3)
-                elif gv[d] < 0:
-                    gv[d] = 0
-            if node[d] > G - bound:
-                if boundary == "sticky":
-                    gv = np.zeros(3)
-                elif gv[d] > 0:
-                    gv[d] = 0
+                elif gv @ nrm < 0:
+                    gv = gv - (gv @ nrm) * nrm
+            elif boundary == "sticky":
+                gv = q * vm
+            elif phi >= 0:  # in front: the normal velocity raised to the line through 0 and the mirror's
+                target = q * min(vm @ nrm, 0.0)
+                if gv @ nrm < target:
+                    gv = gv + (target - gv @ nrm) * nrm
+            elif vm @ nrm < 0:
+                gv = vm - (vm @ nrm) * nrm + q * (vm @ nrm) * nrm
+            else:
+                gv = vm
         grid_v[node] = gv
     out = {k: np.zeros_like(a) for k, a in (("x", x), ("v", v), ("C", Cm), ("F", F))}
     for p in range(P):
@@ -155,7 +194,16 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
             nv += weight * gv
             nC += 4 * inv_dx ** 2 * weight * np.outer(gv, dpos)
         Ft = (np.eye(3) + dt * nC) @ F[p]
-        out["x"][p] = (xs[p] + dt * nv) / L
+        xn = xs[p] + dt * nv
+        for a, sg, pos in walls:  # particles behind a wall go back onto it
+            phi = sg * (xn[a] - pos)
+            if phi < 0:
+                xn[a] -= sg * phi
+                if boundary == "sticky":
+                    nv = np.zeros(3)
+                elif sg * nv[a] < 0:
+                    nv[a] = 0.0
+        out["x"][p] = xn / L
         out["v"][p] = (nv + 0.5 * dt * np.asarray(g, float)) / L
         out["C"][p] = nC
         out["F"][p] = np_return_map(Ft, mu[p], lam[p], models[p][2], models[p][1])
@@ -407,6 +455,51 @@ def test_pseudo_step_matches_taichi(el):
             if not err <= tol:
                 bad.append(f"{e}/{p} {q}: max error {err:.3g} > {tol:.3g}")
     assert not bad, "; ".join(bad)
+
+
+def test_pseudo_step_matches_taichi_with_a_rigid_body():
+    """One substep with a deformable instance touching a free rigid body (rotated, spinning,
+    moving): the torch rigid projection (momentum and angular momentum of the G2P velocities,
+    rotation by exp(dt [w]x)) gives the Taichi solver's state for every particle."""
+    Dynamics, Material, MPMSolver = _taichi_solver()
+    G, dt, s = 16, 5e-4, 1 / 32
+    lin = np.arange(s / 2, 0.125, s)
+    cube = np.stack(np.meshgrid(lin, lin, lin[:3], indexing="ij"), -1).reshape(-1, 3)  # 0.125 x 0.125 x 0.094
+    ang = 0.4
+    Rz = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+    xr = (cube - cube.mean(0)) @ Rz.T + [0.5, 0.5, 0.45]
+    xd, vd, Cd, Fd = random_state(60, seed=9, lo=0.42, hi=0.58)
+    xd[:, 2] = np.random.default_rng(1).uniform(0.52, 0.6, 60)   # a soft layer on top of it
+    w = np.array([0.5, -1.0, 3.0])
+    W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    c = xr.mean(0)
+    x = np.r_[xr, xd]
+    v = np.r_[np.cross(w, xr - c) + [0.3, 0.0, -0.5], vd]
+    Cm = np.r_[np.broadcast_to(W, (len(xr), 3, 3)), Cd]
+    F = np.r_[np.broadcast_to(Rz, (len(xr), 3, 3)), Fd]
+    label = np.r_[np.zeros(len(xr), int), np.ones(60, int)]
+    vol = np.full(len(x), s ** 3)
+    insts = [{**inst(0, "fixed_corotated", "identity", E=2e7, rho=2600.0, material="stone"), "rigid": True},
+             inst(1, "neo_hookean", "identity", E=5e4)]
+    mats = [Material("fixed_corotated", "identity", E=2e7, nu=0.3, density=2600.0, rigid=True),
+            Material("neo_hookean", "identity", E=5e4, nu=0.3, density=1000.0)]
+    sol = MPMSolver(mats, n_grid=G, domain_size=1.0, dynamics=Dynamics.free(), backend="cpu")
+    sol.set_particles(x, vol, label)
+    sol.set_state(x, v, Cm, F)
+    sol.substep(dt)
+    ref = sol.get_state()
+    table = B.instance_table(insts, label, vol, dtype=torch.float64)
+    assert table.rigid == [True, False]
+    out = B.pseudo_step(tstate(x, v, Cm, F), dt, B.log_E_from_instances(insts), table, B.GridSpec(G))
+    assert float(out["tau"][: len(xr)].abs().max()) == 0.0
+    for q in "xvCF":
+        got, want = out[q].detach().numpy(), ref[q]
+        tol = 2e-5 * max(float(np.abs(want).max()), 1.0)
+        assert np.abs(got - want).max() <= tol, f"{q}: {np.abs(got - want).max():.3g} > {tol:.3g}"
+    # the rigid rows moved as a rigid body: pairwise distances kept
+    xr1 = out["x"].detach().numpy()[: len(xr)]
+    assert np.allclose(np.linalg.norm(xr1[:20, None] - xr1[None, -20:], axis=-1),
+                       np.linalg.norm(xr[:20, None] - xr[None, -20:], axis=-1), atol=1e-9)
 
 
 def test_pseudo_step_matches_taichi_with_tearing():

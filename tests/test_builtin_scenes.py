@@ -16,7 +16,7 @@ from physgs_steps.builtin_scenes import BUILTIN_SCENES, DEFAULT_N_GAUSSIANS, gro
 from physgs_steps.builtin_scenes import primitives as P
 from physgs_steps.errors import ConfigError
 
-K_GT = {"bear": 1, "bear_can": 2, "duck_stone": 2, "ficus": 1, "basket_mat": 2, "bread": 1}
+K_GT = {"bear": 1, "bear_can": 2, "duck_stone": 2, "ficus": 1, "basket_mat": 2, "bread": 1, "ball_jelly": 2}
 TWO = [s for s in BUILTIN_SCENES if K_GT[s] == 2]
 SURFACE_TOL = 1e-5  # m; float32 means of a scene < 0.6 m across
 
@@ -32,7 +32,7 @@ def normals_of(scene) -> np.ndarray:
 
 
 def test_scene_names():
-    assert BUILTIN_SCENES == ("bear", "bear_can", "duck_stone", "ficus", "basket_mat", "bread")
+    assert BUILTIN_SCENES == ("bear", "bear_can", "duck_stone", "ficus", "basket_mat", "bread", "ball_jelly")
     assert set(K_GT) == set(BUILTIN_SCENES)
 
 

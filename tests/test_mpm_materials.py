@@ -153,6 +153,7 @@ PLASTIC = [
     Material("stvk_hencky", "mohr_coulomb", E=E, nu=NU, density=1600.0, name="mohr_coulomb", friction_angle=30.0,
              cohesion=0.01),
     Material("fluid", "fluid", E=E, nu=NU, density=1000.0, name="fluid"),
+    Material("stvk_hencky", "mohr_coulomb", E=E, nu=NU, density=1600.0, name="sand", friction_angle=30.0),
 ]
 
 
@@ -202,6 +203,19 @@ def test_return_map_lands_on_or_inside_yield_surface(plastic_solver, k):
     # the returned stress is the stress of the returned F
     tau_of_F = plastic_solver.kirchhoff(F.astype(np.float32), np.full(len(F), k))
     assert np.abs(tau - tau_of_F).max() <= 1e-4 * np.abs(tau_of_F).max() + 1e-6 * mu
+
+
+def test_cohesionless_sand_carries_no_tension(plastic_solver):
+    """Separating grains (issue #14, column collapse): a cohesionless Mohr-Coulomb particle
+    has no tensile principal stress in any state, and a stretched one (tr e >= 0) none at all."""
+    k = len(PLASTIC) - 1
+    mu = PLASTIC[k].mu
+    F_trial = np.concatenate([_random_F(300, 0.3, 41), 1.05 * _random_F(300, 0.01, 42)])  # the 2nd half: stretched
+    _, tau = plastic_solver.return_map(F_trial, np.full(len(F_trial), k))
+    t = np.linalg.eigvalsh(0.5 * (tau + np.swapaxes(tau, -1, -2)).astype(np.float64))  # principal Kirchhoff stresses
+    assert np.all(t.max(-1) <= 1e-5 * mu)
+    assert np.abs(tau[300:]).max() <= 1e-5 * mu
+    assert np.mean(t.min(-1) < -1e-3 * mu) > 0.3  # compressed states still carry pressure
 
 
 def test_material_validation_names_the_key():

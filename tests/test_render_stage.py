@@ -198,6 +198,26 @@ def test_bad_files_and_config(tmp_path):
         validate({"elevation_deg": 95}, load_schema("scene_camera.schema.yaml"), "test", "camera")
 
 
+def test_final_frames_sheet_shows_each_videos_last_frame(tmp_path):
+    """The before/after sheet (README, rigid instances): one tile per video, its last frame."""
+    from physgs_steps.render.video import VideoWriter, final_frames_sheet
+
+    paths = []
+    for k, colour in enumerate(([255, 0, 0], [0, 0, 255])):
+        p = tmp_path / f"v{k}.mp4"
+        w = VideoWriter(p, 64, 48, 10.0, crf=0)
+        w.append(np.full((48, 64, 3), 255, np.uint8))
+        w.append(np.broadcast_to(np.array(colour, np.uint8), (48, 64, 3)).copy())
+        w.close()
+        paths.append(p)
+    sheet = final_frames_sheet(paths, ["main", "branch"], tmp_path / "s.png", columns=2, tile_width=64)
+    assert (tmp_path / "s.png").exists()
+    left, right = sheet[10:30, 10:50].reshape(-1, 3).mean(0), sheet[10:30, 78:118].reshape(-1, 3).mean(0)
+    assert left[0] > 200 and left[2] < 60 and right[2] > 200 and right[0] < 60  # last frames, in order
+    with pytest.raises(RenderError, match="one label per video"):
+        final_frames_sheet(paths, ["main"], tmp_path / "t.png")
+
+
 def test_frames_per_call_bounds_gpu_memory():
     """gsplat's frames per call: render.batch at most, render.batch_gaussians gaussian-frames at most."""
     from physgs_steps.render.stage import frames_per_call

@@ -3,7 +3,8 @@
 The knowledge base is a data file: one entry per material a user may name, with its
 elasticity and plasticity models, a simulation-effective Young's modulus ``E`` and the
 range ``E_range`` it may be clamped to, the handbook value ``E_real``, Poisson's ratio,
-density, plasticity parameters, the words that name it (``aliases``, ``descriptors``) and a
+density, plasticity parameters, whether an object of it is simulated as a rigid body
+(``rigid``, default false), the words that name it (``aliases``, ``descriptors``) and a
 one-line ``source``.  It is read by the prior matcher, quoted to the VLMs as expert priors
 and used by the simulator as the preset table for ``material: <name>`` pins.
 
@@ -65,8 +66,8 @@ REQUIRED_PLASTICITY_PARAMS = {
 }
 
 _ENTRY_KEYS = {"elasticity", "plasticity", "E", "E_range", "E_real", "nu", "density",
-               "plasticity_params", "aliases", "descriptors", "source"}
-_REQUIRED_KEYS = _ENTRY_KEYS - {"descriptors"}
+               "plasticity_params", "aliases", "descriptors", "source", "rigid"}
+_REQUIRED_KEYS = _ENTRY_KEYS - {"descriptors", "rigid"}
 
 
 def _squash(name: str) -> str:
@@ -196,6 +197,9 @@ def _check_entry(path: Path, name: str, e: Any) -> dict:
     if e["E_real"] is not None:
         out["E_real"] = _positive_number(path, f"{where}: E_real", e["E_real"])
     out["plasticity_params"] = _check_plasticity_params(path, where, out["plasticity"], e["plasticity_params"])
+    if not isinstance(e.get("rigid", False), bool):
+        raise InputError(path, f"{where}: rigid must be true or false, got {e.get('rigid')!r}")
+    out["rigid"] = bool(e.get("rigid", False))
     for k in ("aliases", "descriptors"):
         words = e.get(k) or []
         if not isinstance(words, list) or not all(isinstance(w, str) and w.strip() for w in words):
@@ -287,7 +291,7 @@ def material_params(name_or_alias: Any, kb: dict | None = None, key: str = "mate
     return {
         "material": e["name"], "elasticity": e["elasticity"], "plasticity": e["plasticity"],
         "E": e["E"], "nu": e["nu"], "density": e["density"],
-        "plasticity_params": dict(e["plasticity_params"]),
+        "plasticity_params": dict(e["plasticity_params"]), "rigid": e["rigid"],
     }
 
 
@@ -302,6 +306,6 @@ def kb_table_text(kb: dict | None = None) -> str:
         lines.append(
             f"- {name}: elasticity={e['elasticity']}, plasticity={e['plasticity']}, "
             f"E={e['E']:.3g} Pa (range {e['E_range'][0]:.3g}-{e['E_range'][1]:.3g}), nu={e['nu']:g}, "
-            f"density={e['density']:g} kg/m^3{pp_txt}"
+            f"density={e['density']:g} kg/m^3{pp_txt}, rigid={'true' if e['rigid'] else 'false'}"
         )
     return "\n".join(lines)

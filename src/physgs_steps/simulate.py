@@ -133,17 +133,38 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
     sim = cfg["sim"]
     scene = cfg.get("scene") or {}
     dyn = Dynamics.from_config(scene.get("dynamics"), source=str(scene.get("_path", "scene file")))
+    materials = rigid_setting(materials, sim)
     solver = MPMSolver(materials, n_grid=int(sim["n_grid"]), domain_size=float(sim["domain_size"]), dynamics=dyn,
-                       backend=_backend(cfg), labels=labels, sort_particles=bool(sim.get("sort_particles", True)))
+                       backend=_backend(cfg), labels=labels, sort_particles=bool(sim.get("sort_particles", True)),
+                       p2g=str(sim.get("p2g", "auto")))
     index = {l: i for i, l in enumerate(labels)}
     material = np.array([index[int(l)] for l in parts["label"]], np.int64)
     solver.set_particles(parts["x"], parts["vol"], material)
     counts = np.bincount(material, minlength=len(materials))
-    for m, n in zip(materials, counts):
-        log.info("instance %s: %d particles, wave speed %.3g m/s", m.describe(), n, m.wave_speed)
-    log.info("MPM: %d particles, grid %d^3 (dx %.4g m), backend %s, %s", solver.n_particles, solver.n_grid,
-             solver.dx, solver.arch, describe_counts(solver.bound))
+    L3 = float(sim["domain_size"]) ** 3
+    for k, (m, n) in enumerate(zip(materials, counts)):
+        if m.fixed:
+            log.info("instance %s: %d particles -> FIXED: static geometry (a level-set collider), not simulated",
+                     m.describe(), n)
+        elif m.rigid:
+            mass = float(parts["vol"][material == k].sum()) * L3 * m.density
+            log.info("instance %s: %d particles -> RIGID: one free rigid body of %.4g kg (density x volume), "
+                     "no stress, no time-step limit", m.describe(), n, mass)
+        else:
+            log.info("instance %s: %d particles -> SIMULATED (deformable), wave speed %.3g m/s", m.describe(), n,
+                     m.wave_speed)
+    log.info("MPM: %d particles simulated (%d static), grid %d^3 (dx %.4g m), backend %s, %s", solver.n_particles,
+             solver.n_input - solver.n_particles, solver.n_grid, solver.dx, solver.arch, describe_counts(solver.bound))
     return solver
+
+
+def rigid_setting(materials: list[Material], sim: dict) -> list[Material]:
+    """The materials as simulated under ``sim.rigid_bodies``: with false (the ``no_rigid``
+    ablation) every free rigid instance is deformable with its material's models and
+    simulation-effective E; fixed instances stay static geometry."""
+    if sim.get("rigid_bodies", True):
+        return list(materials)
+    return [m if m.fixed else m.with_(rigid=False) for m in materials]
 
 
 def _prepare(inputs: dict, cfg: dict, log: logging.Logger):

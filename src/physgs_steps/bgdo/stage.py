@@ -126,7 +126,7 @@ def grid_from_config(cfg: dict, sim_config: dict | None = None) -> GridSpec:
     dyn = rec.get("dynamics") if isinstance(rec.get("dynamics"), dict) else (cfg.get("scene") or {}).get("dynamics")
     dyn = C.validate(copy.deepcopy(dyn or {}), C.load_schema("scene_dynamics.schema.yaml"), "scene", "dynamics")
     return GridSpec(n_grid=int(n_grid), domain_size=float(L), gravity=tuple(float(g) for g in dyn["gravity"]),
-                    boundary=dyn["boundary"])
+                    boundary=dyn["boundary"], wall_margin=float(dyn["wall_margin"]))
 
 
 # ----------------------------------------------------------------------------- the stage
@@ -175,8 +175,19 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
     dtype = torch.float64 if bcfg.get("dtype") == "float64" else torch.float32
     params = _read_params(inputs["params"])
     meta = read_keyframes_meta(inputs["keyframes"])
-    table = instance_table(params["instances"], meta["label"], meta["vol"], dtype=dtype, device=device,
-                           source=inputs["params"])
+    rec_sim0 = (meta.get("sim_config") or {}).get("sim") or cfg.get("sim") or {}
+    full = instance_table(params["instances"], meta["label"], meta["vol"], dtype=dtype, device=device,
+                          source=inputs["params"], rigid_bodies=bool(rec_sim0.get("rigid_bodies", True)))
+    # fixed instances are static geometry: not in the MPM, so not in the pseudo step either
+    fixed_k = [k for k in range(full.n_instances) if full.fixed and full.fixed[k]]
+    keep = np.flatnonzero(~np.isin(meta["label"], fixed_k))
+    table = full.select(torch.as_tensor(keep, device=device)) if fixed_k else full
+    rigid = [full.is_rigid(k) for k in range(full.n_instances)]
+    if any(rigid):
+        log.info("rigid instances %s (%s): skipped by BGDO, their E does not enter the simulation",
+                 [k for k in range(len(rigid)) if rigid[k]], ", ".join(
+                     f"{full.names[k]}: {'fixed' if fixed_k and k in fixed_k else 'free'}" for k in range(len(rigid))
+                     if rigid[k]))
     _check_same_E(params, meta.get("params"), inputs["keyframes"], inputs["params"])
     grid = grid_from_config(cfg, meta.get("sim_config"))
     scales = reference_scales(params["instances"], bcfg)
@@ -193,11 +204,11 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
         for kf in frames_:
             first.setdefault("x", kf["x"])
             first.setdefault("v", kf["v"])
-            yield kf
+            yield {**kf, **{q: kf[q][keep] for q in ("x", "v", "C", "F")}} if fixed_k else kf
 
     frames = bgdo_signals(keep_first(iter_keyframes(inputs["keyframes"], meta["frames"])), log_E, table, grid, scales,
                           device=device, dtype=dtype, log=log, measure=bcfg["deformation_measure"])
-    info = unstable_run_info(meta, params["instances"], grid, float(bcfg["cfl_limit"]))
+    info = unstable_run_info(meta, params["instances"], grid, float(bcfg["cfl_limit"]), rigid)
     sstress = static_stress(first["x"], meta["label"], params["instances"], grid)
     E_now = np.exp(log_E.detach().cpu().double().numpy())
     info["static_delta"] = [float(s_ / e_) for s_, e_ in zip(sstress, E_now)]
@@ -211,11 +222,12 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
                     "collapsed under its load; missing key frames count as such states)", info["missing"],
                     info["cfl"], float(bcfg["cfl_limit"]), info["fate"])
     frames = assemble_frames(frames, meta, info)
-    silent = mark_unloaded(frames, sstress, scales, float(bcfg.get("min_load", 0.01)))
+    silent = [k for k in mark_unloaded(frames, sstress, scales, float(bcfg.get("min_load", 0.01))) if not rigid[k]]
     contact = _warn_no_signal(silent, first, meta, params["instances"], grid, cfg, log)
     t2 = time.perf_counter()
     new_log_E, records = bgdo_update(log_E, frames, scales, bcfg,
-                                     limits={"ceiling": ceiling, "static_stress": sstress, "fate": info["fate"]})
+                                     limits={"ceiling": ceiling, "static_stress": sstress, "fate": info["fate"],
+                                             "rigid": rigid})
     iteration = 1 + sum(1 for h in params.get("history") or [] if isinstance(h, dict) and h.get("stage") == "bgdo_update")
     out = copy.deepcopy(params)
     by_label = {int(i["label"]): i for i in out["instances"]}
@@ -264,6 +276,7 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
         "device": device, "dtype": str(dtype).replace("torch.", ""),
         "forward_stable": info["stable"], "missing_key_frames": info["missing"], "forward_cfl": info["cfl"],
         "instance_fates": info["fate"], "delta_broken": info["delta_broken"],
+        "rigid_skipped": [records[k]["name"] for k in range(len(rigid)) if rigid[k]],
         "min_load": bcfg.get("min_load", 0.01), "no_signal": {str(k): v for k, v in contact.items()},
         "key_frames": [fr[1] for fr in meta["frames"]], "grid": {"n_grid": grid.n_grid, "domain_size": grid.domain_size,
                                                                   "gravity": list(grid.gravity), "boundary": grid.boundary},

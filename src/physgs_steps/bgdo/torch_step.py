@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from .. import materials_kb
+from ..mpm.colliders import COVER, FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
 
 # ----------------------------------------------------------------------------- model names
 ELASTICITY = materials_kb.ELASTICITY_MODELS  # canonical names, docs/CONTRACTS.md
@@ -359,6 +360,11 @@ class InstanceTable:
     plasticity: list
     plastic: PlasticParams
     names: list = field(default_factory=list)
+    rigid: list = field(default_factory=list)   # K bools: instance moves as one rigid body
+    fixed: list = field(default_factory=list)   # K bools: static geometry (callers leave its rows out)
+
+    def is_rigid(self, k: int) -> bool:
+        return bool(self.rigid[k]) if self.rigid else False
 
     @property
     def n_instances(self) -> int:
@@ -367,14 +373,14 @@ class InstanceTable:
     def select(self, idx: torch.Tensor) -> "InstanceTable":
         """The same instances with only the particles ``idx``  # [P'] int64."""
         return InstanceTable(self.label[idx], self.vol[idx], self.nu, self.density, list(self.elasticity),
-                             list(self.plasticity), self.plastic, list(self.names))
+                             list(self.plasticity), self.plastic, list(self.names), list(self.rigid), list(self.fixed))
 
     def to(self, device) -> "InstanceTable":
         p = self.plastic
         return InstanceTable(self.label.to(device), self.vol.to(device), self.nu.to(device), self.density.to(device),
                              list(self.elasticity), list(self.plasticity),
                              PlasticParams(*(getattr(p, k).to(device) for k in PLASTIC_KEYS)),
-                             list(self.names))
+                             list(self.names), list(self.rigid), list(self.fixed))
 
     @property
     def fractures(self) -> list:
@@ -386,11 +392,14 @@ _PLASTIC_DEFAULTS = {"yield_stress": math.inf, "friction_angle": 30.0, "cohesion
                      "fracture_strain": math.inf, "fracture_softening": 0.2}
 
 
-def instance_table(instances: list[dict], label, vol, dtype=torch.float32, device="cpu", source: str = "params.json") -> InstanceTable:
+def instance_table(instances: list[dict], label, vol, dtype=torch.float32, device="cpu", source: str = "params.json",
+                   rigid_bodies: bool = True) -> InstanceTable:
     """Build the table from params.json ``instances`` (sorted by ``label``) and particle arrays.
 
     label  # [P] int instance id per particle (0..K-1)
     vol  # [P] particle volume, domain units^3
+    rigid_bodies: honour the instances' ``rigid``/``fixed`` flags (sim.rigid_bodies; false is
+    the ``no_rigid`` ablation: free rigid instances are deformable, fixed ones stay static).
     """
     from ..errors import InputError
 
@@ -406,7 +415,7 @@ def instance_table(instances: list[dict], label, vol, dtype=torch.float32, devic
     label_np = np.asarray(label)
     if label_np.size and (label_np.min() < 0 or label_np.max() >= K):
         raise InputError(source, f"particle labels span {label_np.min()}..{label_np.max()} but params has {K} instances")
-    nu, rho, el, pl, names = [], [], [], [], []
+    nu, rho, el, pl, names, rigid, fixed = [], [], [], [], [], [], []
     pvals = {k: [] for k in _PLASTIC_DEFAULTS}
     for k in range(K):
         inst = by_label[k]
@@ -424,6 +433,8 @@ def instance_table(instances: list[dict], label, vol, dtype=torch.float32, devic
         el.append(canonical_elasticity(str(inst.get("elasticity")), f"{source}: {where}.elasticity"))
         pl.append(canonical_plasticity(str(inst.get("plasticity")), f"{source}: {where}.plasticity"))
         names.append(str(inst.get("name", f"instance{k}")))
+        fixed.append(bool(inst.get("fixed")) and bool(inst.get("rigid")))
+        rigid.append(bool(inst.get("rigid")) and (rigid_bodies or fixed[-1]))
         pp = inst.get("plasticity_params") or {}
         for key, default in _PLASTIC_DEFAULTS.items():
             v = pp.get(key)
@@ -438,7 +449,7 @@ def instance_table(instances: list[dict], label, vol, dtype=torch.float32, devic
         label=torch.as_tensor(label_np.astype(np.int64), device=device),
         vol=t(vol), nu=t(nu), density=t(rho), elasticity=el, plasticity=pl,
         plastic=PlasticParams(*(t(pvals[k]) for k in PLASTIC_KEYS)),
-        names=names,
+        names=names, rigid=rigid, fixed=fixed,
     )
 
 
@@ -454,14 +465,15 @@ class GridSpec:
     """The background grid and the forces of the pseudo step.
 
     n_grid: G nodes per axis; domain_size: L metres per domain unit; gravity: (3,) m/s^2;
-    boundary: 'slip' | 'sticky' domain walls on the ``bound`` outermost nodes per side.
+    boundary: 'slip' | 'sticky' domain walls, planes ``wall_margin`` domain units inside the
+    faces of the unit cube (physgs_steps.mpm.colliders).
     """
 
     n_grid: int
     domain_size: float = 1.0
     gravity: tuple = (0.0, 0.0, -9.8)
     boundary: str = "slip"
-    bound: int = 3
+    wall_margin: float = 0.1
 
 
 _OFFSETS = torch.tensor(list(itertools.product(range(3), repeat=3)), dtype=torch.int64)  # [27, 3]
@@ -478,9 +490,9 @@ def particle_stress(F: torch.Tensor, log_E_p: torch.Tensor, table: InstanceTable
     """
     E_p = torch.exp(log_E_p).to(F.dtype)
     mu, lam = lame(E_p, table.nu[table.label])
-    tau = F.new_zeros(F.shape)
+    tau = F.new_zeros(F.shape)  # rigid instances carry no stress
     for model in sorted(set(table.elasticity)):
-        ks = [k for k, m in enumerate(table.elasticity) if m == model]
+        ks = [k for k, m in enumerate(table.elasticity) if m == model and not table.is_rigid(k)]
         idx = torch.nonzero(torch.isin(table.label, torch.as_tensor(ks, device=F.device)), as_tuple=True)[0]
         if idx.numel():
             tau = tau.index_copy(0, idx, kirchhoff(F[idx], mu[idx], lam[idx], model))
@@ -507,14 +519,14 @@ def plastic_projection(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, tab
     for model in sorted(set(table.plasticity)):
         if model == "identity":
             continue
-        ks = [k for k, m in enumerate(table.plasticity) if m == model]
+        ks = [k for k, m in enumerate(table.plasticity) if m == model and not table.is_rigid(k)]
         idx = torch.nonzero(torch.isin(table.label, torch.as_tensor(ks, device=F.device)), as_tuple=True)[0]
         if idx.numel():
             out = out.index_copy(0, idx, return_map(F[idx], mu[idx], lam[idx], pp.subset(idx), model))
     return out
 
 
-def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec):
+def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=None, body=None, cover=None):
     """One MLS-MPM/APIC substep after the stress (CONTRACTS.md steps 1-4, without plasticity).
 
     All in SI: x  # [P, 3] m, v  # [P, 3] m/s at the state's time, C  # [P, 3, 3] 1/s,
@@ -522,6 +534,11 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec):
     Leapfrog like the Taichi solver: the velocities are staggered by -dt/2 g before P2G, the
     grid kicks them by dt g, x drifts with the half-step velocity, and the returned v is the
     half-step velocity plus dt/2 g (the velocity at the new state's time).
+    rigid  # [P] bool or None: these particles read the grid velocity before the wall
+    conditions and are not projected onto the walls (rigid bodies meet boundaries as bodies).
+    body  # [P] long: the rigid body of each row (-1: deformable), cover  # [B] kg: each body's
+    covering node mass; with them the grid nodes the bodies cover move with them
+    (:func:`_rigid_grid`, the Taichi solver's coupling) and rigid rows read their body's field.
     returns x, v, C, F_trial (each like the input)
     """
     P = x.shape[0]
@@ -550,27 +567,205 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec):
     has_mass = grid_m > 0
     gv = grid_mv / torch.where(has_mass, grid_m, torch.ones_like(grid_m))[:, None]
     gv = torch.where(has_mass[:, None], gv + dt * g, torch.zeros_like(gv))
-    gv = _walls(gv, uniq, G, grid)
-    gvp = gv[inv].reshape(P, 27, 3)
+    field = None
+    if body is not None and bool((body >= 0).any()):
+        gv, field = _rigid_grid(gv, grid_m, uniq, inv.reshape(P, 27), weight, mom, p_mass, body, cover, G, dx, dt, g)
+    # a wall acts on the nodes of (deformable) particles that touch it (colliders.py)
+    phi_p = torch.stack([sgn * (x[:, a] - pos) for a, sgn, pos in _wall_planes(G, dx, grid)], -1).min(-1).values
+    touch = phi_p < TOUCH * dx
+    if rigid is not None:
+        touch = touch & ~rigid
+    engaged = torch.zeros(M, dtype=torch.bool, device=dev)
+    if bool(touch.any()):
+        engaged[inv.reshape(P, 27)[touch].reshape(-1)] = True
+    gv_b = _walls(gv, grid_m, uniq, G, dx, grid, engaged)
+    gvp = gv_b[inv].reshape(P, 27, 3)
+    if rigid is not None and bool(rigid.any()):
+        gvp = torch.where(rigid[:, None, None], (gv if field is None else field)[inv].reshape(P, 27, 3), gvp)
     new_v = (weight[..., None] * gvp).sum(1)
     new_C = 4.0 * inv_dx * inv_dx * torch.einsum("pk,pki,pkj->pij", weight, gvp, dpos)
     new_x = x + dt * new_v
+    new_x, new_v = _project_walls(new_x, new_v, rigid, dx, G, grid)
     I = _eye(P, F)
     F_trial = (I + dt * new_C) @ F
     return new_x, new_v + 0.5 * dt * g, new_C, F_trial
 
 
-def _walls(gv: torch.Tensor, uniq: torch.Tensor, G: int, grid: GridSpec) -> torch.Tensor:
-    """Domain-wall boundary conditions on grid velocities.  # gv [M, 3], uniq [M] node keys"""
-    k = uniq
-    idx = torch.stack([k // (G * G), (k // G) % G, k % G], dim=-1)  # [M, 3]
-    low = idx < grid.bound
-    high = idx > G - grid.bound
-    if grid.boundary == "sticky":
-        wall = (low | high).any(-1, keepdim=True)
-        return torch.where(wall, torch.zeros_like(gv), gv)
-    out_of_domain = (low & (gv < 0)) | (high & (gv > 0))
-    return torch.where(out_of_domain, torch.zeros_like(gv), gv)
+def _rigid_grid(gv, grid_m, uniq, inv, weight, mom, p_mass, body, cover, G: int, dx: float, dt: float, g):
+    """The rigid bodies' grid projection of the Taichi solver (kernels.py, rigid.py "Coupling").
+
+    gv  # [M, 3] node velocities (gravity applied), grid_m  # [M], uniq  # [M] node keys,
+    inv  # [P, 27] node of each stencil entry, weight  # [P, 27], mom  # [P, 27, 3] the momenta
+    transferred, body  # [P] long (-1: deformable), cover  # [B] kg.
+    returns gv  # [M, 3] (covered nodes: the body's field; fringe nodes: the soft material's
+    own velocity) and field  # [M, 3] (the owning body's field; gv elsewhere)."""
+    r = body >= 0
+    idx = inv[r].reshape(-1)
+    M = gv.shape[0]
+    own = torch.zeros(M, dtype=torch.long, device=gv.device)
+    own = own.scatter_reduce(0, idx, (body[r] + 1)[:, None].expand(-1, 27).reshape(-1), reduce="amax")
+    rm = gv.new_zeros(M).index_add(0, idx, (weight[r] * p_mass[r, None]).reshape(-1))
+    rmom = gv.new_zeros((M, 3)).index_add(0, idx, (weight[r][..., None] * mom[r]).reshape(-1, 3))
+    rv = torch.where((rm > 0)[:, None], rmom / torch.where(rm > 0, rm, torch.ones_like(rm))[:, None] + dt * g,
+                     torch.zeros_like(rmom))
+    covered = (own > 0) & (rm >= cover[(own - 1).clamp(min=0)])
+    xn = torch.stack([uniq // (G * G), (uniq // G) % G, uniq % G], -1).to(gv.dtype) * dx  # [M, 3]
+    m_n = torch.where(covered, grid_m, rm)
+    v_n = torch.where(covered[:, None], gv, rv)
+    field = gv.clone()
+    for b in range(int(cover.shape[0])):
+        sel = own == b + 1
+        if not bool(sel.any()):
+            continue
+        m, xb, vb = m_n[sel], xn[sel], v_n[sel]
+        Mb = m.sum()
+        c0 = (m[:, None] * xb).sum(0) / Mb
+        rr = xb - c0
+        Pb = (m[:, None] * vb).sum(0)
+        Lc = (m[:, None] * torch.cross(rr, vb, dim=-1)).sum(0)
+        eye = torch.eye(3, dtype=gv.dtype, device=gv.device)
+        Ic = (m[:, None, None] * ((rr * rr).sum(-1)[:, None, None] * eye - rr[:, :, None] * rr[:, None, :])).sum(0)
+        w = torch.linalg.solve(Ic, Lc)
+        rel = xn - c0
+        field = torch.where(sel[:, None], Pb / Mb + torch.cross(w.expand_as(rel), rel, dim=-1), field)
+    soft = grid_m - rm
+    own_soft = (grid_m[:, None] * gv - rm[:, None] * rv) / torch.where(soft > 0, soft, torch.ones_like(soft))[:, None]
+    fringe_v = torch.where((soft > FRINGE_SOFT * grid_m)[:, None], own_soft, field)
+    gv = torch.where(covered[:, None], field, torch.where((own > 0)[:, None], fringe_v, gv))
+    return gv, field
+
+
+def _wall_planes(G: int, dx: float, grid: GridSpec):
+    """The 6 walls in the Taichi solver's slot order: (axis, sign of the normal, plane position m)."""
+    L = G * dx
+    m = grid.wall_margin * grid.domain_size
+    return [(a, s_, m if s_ > 0 else L - m) for a in range(3) for s_ in (1.0, -1.0)]
+
+
+def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: float, grid: GridSpec,
+           engaged: torch.Tensor) -> torch.Tensor:
+    """Domain walls on the grid velocities with the ghost treatment of
+    physgs_steps.mpm.colliders (linear extrapolation from the mirror point's velocity).
+    gv  # [M, 3] velocities before the walls, gm  # [M] masses, uniq  # [M] node keys,
+    engaged  # [M] bool: nodes a particle touching a wall transfers to (only they feel walls)."""
+    dev, dtp = gv.device, gv.dtype
+    idx = torch.stack([uniq // (G * G), (uniq // G) % G, uniq % G], dim=-1)  # [M, 3]
+    xn = idx.to(dtp) * dx
+    has = gm > 0
+    dense_v = gv.new_zeros((G * G * G, 3)).index_copy(0, uniq, gv)
+    dense_m = gv.new_zeros((G * G * G,)).index_copy(0, uniq, gm)
+    sticky = grid.boundary == "sticky"
+    out = gv
+    corners = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], device=dev)  # [8, 3]
+    for a, sgn, pos in _wall_planes(G, dx, grid):
+        n = torch.zeros(3, dtype=dtp, device=dev)
+        n[a] = sgn
+        phi = sgn * (xn[:, a] - pos)  # [M]
+        near = has & engaged & (phi < FRONT_BAND * dx)  # behind the wall, or in front within the band
+        if not bool(near.any()):
+            continue
+        behind = near & (phi < 0)
+        # plain rule (fallback): sticky -> 0; slip walls are "separate" without friction
+        un_own = out @ n
+        plain = torch.zeros_like(out) if sticky else out - torch.clamp(un_own, max=0.0)[:, None] * n
+        # ghost: mirror sample (trilinear over nodes with mass)
+        d = (FRONT_BAND + 1.0) * dx  # axis-aligned: the mirror cube lies beyond the band
+        xm = xn + (d - phi)[:, None] * n
+        gpos = xm / dx
+        b0 = torch.floor(gpos).long()
+        fr = gpos - b0.to(dtp)
+        nodes = b0[:, None, :] + corners[None]  # [M, 8, 3]
+        inside = ((nodes >= 0) & (nodes < G)).all(-1)
+        nk = (nodes[..., 0].clamp(0, G - 1) * G + nodes[..., 1].clamp(0, G - 1)) * G + nodes[..., 2].clamp(0, G - 1)
+        wcor = torch.where(corners[None].bool(), fr[:, None, :], 1.0 - fr[:, None, :]).prod(-1)  # [M, 8]
+        wcor = wcor * (inside & (dense_m[nk] > 0)).to(dtp)
+        wsum = wcor.sum(1)
+        ok = wsum > 1e-6
+        vm = (wcor[..., None] * dense_v[nk]).sum(1) / torch.where(ok, wsum, torch.ones_like(wsum))[:, None]
+        q = (phi / d)[:, None]
+        un = vm @ n
+        if sticky:
+            ghost = q * vm
+            front = q * vm
+        else:
+            ut = vm - un[:, None] * n
+            approach = ut + q * un[:, None] * n  # no friction on the walls
+            ghost = torch.where((un < 0)[:, None], approach, vm)
+            # in front: the normal part pushed up to the line through 0 and the mirror's (pushes only)
+            target = q[:, 0] * torch.clamp(un, max=0.0)
+            front = out + torch.clamp(target - un_own, min=0.0)[:, None] * n
+        use_ghost = near & ok & (phi > -GHOST_BAND * dx)
+        out = torch.where(use_ghost[:, None], torch.where(behind[:, None], ghost, front),
+                          torch.where(near[:, None], plain, out))
+    return out
+
+
+def _project_walls(x, v, rigid, dx: float, G: int, grid: GridSpec):
+    """Deformable particles behind a wall go back onto it and lose their velocity into it
+    (sticky walls: all of it).  x, v  # [P, 3] m, m/s."""
+    keep = torch.ones(x.shape[0], dtype=torch.bool, device=x.device) if rigid is None else ~rigid
+    for a, sgn, pos in _wall_planes(G, dx, grid):
+        phi = sgn * (x[:, a] - pos)
+        hit = keep & (phi < 0)
+        if not bool(hit.any()):
+            continue
+        x = x.clone()
+        x[:, a] = torch.where(hit, x[:, a] - sgn * phi, x[:, a])
+        if grid.boundary == "sticky":
+            v = torch.where(hit[:, None], torch.zeros_like(v), v)
+        else:
+            un = sgn * v[:, a]
+            v = v.clone()
+            v[:, a] = torch.where(hit & (un < 0), v[:, a] - sgn * un, v[:, a])
+    return x, v
+
+
+def _skew(w: torch.Tensor) -> torch.Tensor:
+    """[B, 3] -> [B, 3, 3] cross-product matrices."""
+    z = torch.zeros_like(w[:, 0])
+    return torch.stack([torch.stack([z, -w[:, 2], w[:, 1]], -1), torch.stack([w[:, 2], z, -w[:, 0]], -1),
+                        torch.stack([-w[:, 1], w[:, 0], z], -1)], -2)
+
+
+def rigid_projection(x_old, x, v, C, F, p_mass, dt: float, dx: float, label, bodies, F_old=None):
+    """The rigid-body step of physgs_steps.mpm.rigid without contacts: each body's particles
+    (rows of ``bodies``' instances) move with the body's rigid motion.
+
+    x_old  # [P, 3] positions at the start of the substep (m; a rigid state), x, v, C  # after
+    G2P (positions, velocities, affine matrices), F  # [P, 3, 3] after G2P (rows of other instances kept),
+    F_old  # [P, 3, 3] at the start of the substep (the bodies' rotations; default F), p_mass  # [P].
+    returns x, v, C, F  # the projected state of every particle (others unchanged)."""
+    F_old = F if F_old is None else F_old
+    x_new, v_new, C_new, F_new = x.clone(), v.clone(), C.clone(), F.clone()
+    for k in bodies:
+        sel = torch.nonzero(label == k, as_tuple=True)[0]
+        if sel.numel() == 0:
+            continue
+        m = p_mass[sel]
+        M = m.sum()
+        c = (m[:, None] * x_old[sel]).sum(0) / M
+        r = x_old[sel] - c
+        vp, Cp = v[sel], C[sel]
+        P_ = (m[:, None] * vp).sum(0)
+        axial = torch.stack([Cp[:, 2, 1] - Cp[:, 1, 2], Cp[:, 0, 2] - Cp[:, 2, 0], Cp[:, 1, 0] - Cp[:, 0, 1]], -1)
+        Lm = (m[:, None] * torch.cross(r, vp, dim=-1)).sum(0) + (m[:, None] * dx * dx / 4.0 * axial).sum(0)
+        eye = torch.eye(3, dtype=x_old.dtype, device=x_old.device)
+        I = (m[:, None, None] * ((r * r).sum(-1)[:, None, None] * eye - r[:, :, None] * r[:, None, :])).sum(0)
+        I = I + M * dx * dx / 2.0 * eye
+        V = P_ / M
+        w = torch.linalg.solve(I, Lm)
+        th = torch.linalg.norm(w) * dt
+        Q = eye.clone()
+        if float(th) > 1e-14:
+            kx = _skew((w / torch.linalg.norm(w))[None])[0]
+            Q = eye + torch.sin(th) * kx + (1.0 - torch.cos(th)) * kx @ kx
+        r_new = r @ Q.T
+        w_new = Q @ torch.linalg.solve(I, Q.T @ Lm)  # (Q I Q^T)^-1 L: angular momentum kept in the new pose
+        x_new[sel] = c + dt * V + r_new
+        v_new[sel] = V + torch.cross(w_new.expand_as(r_new), r_new, dim=-1)
+        C_new[sel] = _skew(w_new[None]).expand(sel.numel(), 3, 3)
+        F_new[sel] = Q @ F_old[sel]
+    return x_new, v_new, C_new, F_new
 
 
 def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTable, grid: GridSpec) -> dict:
@@ -581,7 +776,9 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
     log_E  # [K] natural log of Young's modulus (Pa) per instance
     returns {"x", "v", "C", "F", "ep"} after the substep (domain units) and "tau"  # [P, 3, 3] Pa, the
     Kirchhoff stress of the input state; "mu", "lam"  # [P]; "log_E_p"  # [P] = log_E[label]
-    (differentiate with respect to it for per-particle derivatives).
+    (differentiate with respect to it for per-particle derivatives).  Rigid instances carry no
+    stress and move with their body's rigid motion (:func:`rigid_projection`); rows of fixed
+    instances (static geometry, not in the MPM) must be left out by the caller.
     """
     L = float(grid.domain_size)
     F = state["F"]
@@ -591,13 +788,28 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
     tau, mu, lam = particle_stress(F, log_E_p, table, ep)
     p_vol = table.vol * L ** 3
     p_mass = table.density[table.label] * p_vol
-    x, v, C, F_trial = mpm_step(state["x"] * L, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid)
+    bodies = [k for k in range(table.n_instances) if table.is_rigid(k)]
+    rigid = torch.isin(table.label, torch.as_tensor(bodies, dtype=table.label.dtype, device=F.device)) if bodies else None
+    x0 = state["x"] * L
+    body = cover = None
+    if bodies:
+        body = torch.full_like(table.label, -1)
+        for b, k in enumerate(bodies):
+            body = torch.where(table.label == k, torch.full_like(body, b), body)
+        dx = L / grid.n_grid
+        cover = torch.stack([COVER * table.density[k] * dx ** 3 for k in bodies]).to(F.dtype)
+    x, v, C, F_trial = mpm_step(x0, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid, rigid, body, cover)
     F_new = plastic_projection(F_trial, mu, lam, table)
     idx = _fracturing(table, F.device)
     if idx.numel():
         F_f, ep_f, _ = fracture_step(F_new[idx], ep[idx], table.plastic.subset(table.label[idx]))
         F_new = F_new.index_copy(0, idx, F_f)
         ep = ep.index_copy(0, idx, ep_f)
+    if bodies:
+        # the bodies move with the half-step velocity (as rigid.py's advance); a uniform shift
+        # changes no body's angular momentum about its centre of mass
+        half = 0.5 * dt * torch.as_tensor(grid.gravity, dtype=v.dtype, device=v.device)
+        x, v, C, F_new = rigid_projection(x0, x, v - half, C, F_new, p_mass, dt, L / grid.n_grid, table.label, bodies, F)
+        v = v + half
     return {"x": x / L, "v": v / L, "C": C, "F": F_new, "ep": ep, "tau": tau, "mu": mu, "lam": lam,
             "log_E_p": log_E_p}
-

@@ -258,12 +258,16 @@ def bgdo_signals(keyframes, log_E: torch.Tensor, table: InstanceTable, grid: Gri
     return frames
 
 
-def wave_speeds(instances: list[dict]) -> np.ndarray:
-    """P-wave speed sqrt((lam + 2 mu) / rho) in m/s per instance (label order)  # [K]"""
+def wave_speeds(instances: list[dict], rigid: list | None = None) -> np.ndarray:
+    """P-wave speed sqrt((lam + 2 mu) / rho) in m/s per instance (label order)  # [K]; 0 for the
+    instances flagged in ``rigid`` (rigid bodies carry no elastic waves)."""
     by_label = {int(i["label"]): i for i in instances}
     out = []
     for k in range(len(by_label)):
         i = by_label[k]
+        if rigid is not None and rigid[k]:
+            out.append(0.0)
+            continue
         E, nu, rho = float(i["E"]), float(i["nu"]), float(i["density"])
         mu = E / (2 * (1 + nu))
         lam = E * nu / ((1 + nu) * (1 - 2 * nu))
@@ -288,7 +292,8 @@ def failing_instances(message, names: list) -> list | None:
     return idx or None
 
 
-def unstable_run_info(meta: dict, instances: list[dict], grid: GridSpec, cfl_limit: float) -> dict:
+def unstable_run_info(meta: dict, instances: list[dict], grid: GridSpec, cfl_limit: float,
+                      rigid: list | None = None) -> dict:
     """What an unstable forward run says about each instance.
 
     The forward stage stops at the first unstable frame and stores the last stable frame in
@@ -317,7 +322,7 @@ def unstable_run_info(meta: dict, instances: list[dict], grid: GridSpec, cfl_lim
     dts = stats.get("dt_per_frame") or []
     dx = sim_cfg.get("dx") or grid.domain_size / grid.n_grid
     if dts:
-        cfl = wave_speeds(instances) * float(dts[-1]) / float(dx)
+        cfl = wave_speeds(instances, rigid) * float(dts[-1]) / float(dx)
         info["cfl"] = [float(c) for c in cfl]
         info["fate"] = ["exploded" if c > cfl_limit else "ok" for c in cfl]
     by_label = {int(i["label"]): i for i in instances}
@@ -536,6 +541,7 @@ def bgdo_update(log_E, frames: list[list[dict]], scales: Scales, bcfg: dict,
     ceiling = limits.get("ceiling")
     sstress = limits.get("static_stress")
     fates = limits.get("fate") or ["ok"] * K
+    rigid = limits.get("rigid") or [False] * K
     new = log_E.copy()
     records = []
     for k in range(K):
@@ -551,7 +557,11 @@ def bgdo_update(log_E, frames: list[list[dict]], scales: Scales, bcfg: dict,
                "band": scales.band[k], "fate": fates[k], "ceiling": cap,
                "static_stress": None if sstress is None else float(sstress[k]), "frames": fk, "terms": terms,
                "capped_by_ceiling": False, "rule": "signals"}
-        if math.isnan(G):
+        if rigid[k]:
+            rec.update(G=None, G_unclipped=None, clipped=False, E_after=E, log_E_after=float(log_E[k]), rule="rigid",
+                       note="rigid instance (a rigid body or static geometry): its E does not enter the simulation; "
+                            "left unchanged")
+        elif math.isnan(G):
             unloaded = any(r.get("unloaded") for r in fk)
             why = ("no key frame after frame 0 carries a load (bgdo.min_load): the object had not touched anything "
                    "yet" if unloaded else

@@ -34,6 +34,8 @@ MAT = (0.25, 0.40, 0.60)
 CRUST_LIGHT = (0.86, 0.64, 0.33)
 CRUST = (0.76, 0.50, 0.22)
 SCORE = (0.93, 0.80, 0.55)
+STEEL = (0.60, 0.62, 0.66)
+JELLY_RED = (0.85, 0.18, 0.28)
 
 
 def _unit(v) -> np.ndarray:
@@ -166,6 +168,16 @@ def mat() -> Instance:
     return Instance("mat", [Part("mat", rounded_box([0, 0, 0.006], [0.25, 0.18, 0.006], 0.004), MAT)])
 
 
+def ball() -> Instance:
+    """A steel ball, 0.12 m across."""
+    return Instance("ball", [Part("ball", sphere([0.0, 0.0, 0.06], 0.06), STEEL)])
+
+
+def jelly_block() -> Instance:
+    """A wide jelly slab, 0.5 x 0.36 x 0.16 m, resting on z = 0."""
+    return Instance("jelly", [Part("block", rounded_box([0.0, 0.0, 0.08], [0.25, 0.18, 0.08], 0.015), JELLY_RED)])
+
+
 def bread() -> Instance:
     """An elongated loaf along x: rounded box base, domed top, three lighter score marks."""
     dome_c, dome_r = np.array([0.0, 0.0, 0.05]), np.array([0.134, 0.06, 0.048])
@@ -256,6 +268,10 @@ def build(name: str) -> GroundTruth:
         wall = shell.to_world(np.array([[(shell.inner + shell.outer) / 2.0, 0.0, shell.height / 2.0]]))[0]
         return GroundTruth(name, insts, regions, {"hollow_center": hollow, "basket_wall": wall,
                                                   "mat_center": _part(insts[1], "mat").solid.center})
+    if name == "ball_jelly":
+        insts, regions = _two(jelly_block(), ball(), axis=2, order=(1, 0))
+        return GroundTruth(name, insts, regions, {"ball_center": _part(insts[0], "ball").solid.center,
+                                                  "block_center": _part(insts[1], "block").solid.center})
     if name == "bread":
         (b,), _ = settle([bread()])
         return GroundTruth(name, [b], {}, {"center": _part(b, "base").solid.center})

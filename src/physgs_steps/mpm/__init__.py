@@ -30,20 +30,28 @@ the constitutive models alone.  ``Material.from_params(entry)`` reads a params.j
 ``preset("jelly")`` a knowledge-base material.  CPU runs are bitwise reproducible; on CUDA the
 grid transfer uses float atomics, so runs agree to float tolerance.
 
+Rigid and static instances: ``Material(..., rigid=True)`` moves as one rigid body coupled
+two-way to the grid (rigid.py); ``rigid=True, fixed=True`` is static geometry, a level-set
+collider that does not enter the MPM (colliders.py), as is any ``StaticGeometry(points, ...)``
+given to ``MPMSolver(static=[...])``.
+
 Modules: materials (models), solver (MPMSolver), kernels (Taichi code), dynamics (scene forces
-and colliders), timestep (CFL substeps), stability (checks and messages), runner (frame
-loop), backend (Taichi start-up).
+and colliders), colliders (static geometry, where boundaries sit), rigid (rigid bodies),
+timestep (CFL substeps), stability (checks and messages), runner (frame loop), backend
+(Taichi start-up).
 """
 import importlib
 
 # Names are imported on first use (PEP 562), so that e.g. ``physgs_steps.mpm.timestep`` (BGDO)
 # does not pull in Taichi: a stage process imports only what it uses.
 _EXPORTS = {
-    "Dynamics": "dynamics", "Material": "materials", "preset": "materials", "RunResult": "runner",
+    "Dynamics": "dynamics", "StaticGeometry": "colliders", "Material": "materials", "preset": "materials",
+    "RunResult": "runner",
     "run_frames": "runner", "MPMSolver": "solver", "Thresholds": "stability", "TimeStepper": "timestep",
 }
 
-__all__ = ["Dynamics", "Material", "MPMSolver", "RunResult", "Thresholds", "TimeStepper", "preset", "run_frames"]
+__all__ = ["Dynamics", "Material", "MPMSolver", "RunResult", "StaticGeometry", "Thresholds", "TimeStepper", "preset",
+           "run_frames"]
 
 
 def __getattr__(name: str):

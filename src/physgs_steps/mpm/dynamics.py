@@ -1,5 +1,6 @@
 """Scene dynamics: gravity, domain walls, ground and plane colliders, fixed or moving cuboids,
-impulses, wind, enforced translation and rotation, initial velocities.
+impulses, wind, enforced translation and rotation, initial velocities.  Where each boundary
+sits and how it acts on the grid and the particles: :mod:`physgs_steps.mpm.colliders`.
 
 The scene-file key ``dynamics`` (schema ``workflow/schemas/scene_dynamics.schema.yaml``, which
 documents every key and its units) is parsed by :meth:`Dynamics.from_config`.  At set-up the
@@ -48,6 +49,7 @@ class Dynamics:
 
     gravity: tuple = (0.0, 0.0, -9.8)
     boundary: str = "slip"
+    wall_margin: float = 0.1
     ground: dict | None = None
     damping: float = 0.0
     initial_velocity: list = field(default_factory=list)
@@ -63,16 +65,17 @@ class Dynamics:
         from .. import config as C
 
         d = C.validate(dict(cfg or {}), C.load_schema("scene_dynamics.schema.yaml"), source, "dynamics")
-        out = cls(gravity=tuple(float(g) for g in d["gravity"]), boundary=d["boundary"], ground=d["ground"],
+        out = cls(gravity=tuple(float(g) for g in d["gravity"]), boundary=d["boundary"],
+                  wall_margin=float(d["wall_margin"]), ground=d["ground"],
                   damping=float(d["damping"]), initial_velocity=list(d["initial_velocity"]),
                   boundary_conditions=[e for e in d["boundary_conditions"] if e["type"] != "bounding_box"])
         out._check(source)
         return out
 
     @classmethod
-    def free(cls, gravity=(0.0, 0.0, -9.8), boundary: str = "slip") -> "Dynamics":
+    def free(cls, gravity=(0.0, 0.0, -9.8), boundary: str = "slip", wall_margin: float = 0.1) -> "Dynamics":
         """Gravity and domain walls only (the CONTRACTS.md step, as in the torch pseudo-step)."""
-        return cls(gravity=tuple(float(g) for g in gravity), boundary=boundary)
+        return cls(gravity=tuple(float(g) for g in gravity), boundary=boundary, wall_margin=float(wall_margin))
 
     # ------------------------------------------------------------------ checks
     def _check(self, source: str) -> None:
@@ -167,6 +170,7 @@ class Dynamics:
         table = np.stack(rows).astype(np.float32) if rows else np.zeros((1, TABLE_WIDTH), np.float32)
         return BoundDynamics(
             gravity=np.asarray(self.gravity, np.float32), boundary=self.boundary, damping=float(self.damping),
+            wall_margin=float(self.wall_margin) * L,
             counts=(len(surf), len(cub), len(acc), len(tra), len(rot)), table=table, act_bits=act_bits,
             selected=[int(m.sum()) for m in masks],
         )
@@ -200,13 +204,14 @@ class BoundDynamics:
     gravity: np.ndarray          # [3] m/s^2
     boundary: str                # slip | sticky
     damping: float               # 1/s
+    wall_margin: float           # m: distance of the domain walls from the domain faces
     counts: tuple                # (surface, cuboid, acceleration, translation, rotation) rows
     table: np.ndarray            # [rows, TABLE_WIDTH] f32
     act_bits: np.ndarray         # [P] int32 particle action bits
     selected: list               # particles selected per particle action
 
     def spec(self) -> tuple:
-        """The compile-time part (what the kernel is specialised to)."""
+        """The compile-time part (what the kernel is specialised to): boundary, damping, counts."""
         return (self.boundary, self.damping > 0.0, self.counts)
 
 
@@ -293,6 +298,7 @@ def _select(e: dict, x: np.ndarray, material: np.ndarray, resolver: _InstanceRes
 
 def describe_counts(b: BoundDynamics) -> str:
     s, c, a, t, r = b.counts
-    return (f"gravity {tuple(round(float(g), 3) for g in b.gravity)}, walls {b.boundary}, {s} surface collider(s), "
+    return (f"gravity {tuple(round(float(g), 3) for g in b.gravity)}, walls {b.boundary} {b.wall_margin:g} m from the "
+            f"domain faces, {s} surface collider(s), "
             f"{c} cuboid(s), {a} force(s), {t} enforced translation(s), {r} rotation(s), damping {b.damping:g}/s")
 

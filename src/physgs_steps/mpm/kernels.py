@@ -29,6 +29,12 @@ then fixed, so CPU runs are bitwise reproducible.  On CUDA, T = 1 and P2G uses a
 A particle whose stencil would leave the grid (a blow-up) is clamped onto it and counted in
 err[0], so a failing run never reads or writes out of bounds.
 
+``Spec.p2g == "coarsened"`` (p2g_sorted.py): P2G sums runs of consecutive particles with the
+same stencil base in registers and writes the 27 nodes once per run (threads take ``Spec.run``
+particles each, or, with ``run`` = p2g_sorted.CELL, the slots of one cell of the last device
+sort, ``cell_start`` [G^3 + 1]; the CPU's private-grid chunks likewise).  ``cell_start`` is
+read only in that case.
+
 The stress of the current F is kept per particle (``tau``): the G2P pass computes it right
 after the return map from the SVD it already has, so a substep needs at most one SVD per
 particle; ``build_constitutive(...).stress`` recomputes it after ``F`` is set from outside.
@@ -42,8 +48,9 @@ from typing import NamedTuple
 import taichi as ti
 
 from . import materials as M
+from . import p2g_sorted as P2G
 
-BOUND = 3  # domain wall thickness in grid nodes (CONTRACTS.md)
+from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
 
 vec3 = ti.types.vector(3, ti.f32)
 mat3 = ti.types.matrix(3, 3, ti.f32)
@@ -52,7 +59,14 @@ M1 = ti.types.ndarray(dtype=mat3, ndim=1)
 S1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
 S2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
+V3 = ti.types.ndarray(dtype=vec3, ndim=3)
 V4 = ti.types.ndarray(dtype=vec3, ndim=4)
+S3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
+I3 = ti.types.ndarray(dtype=ti.i32, ndim=3)
+I4 = ti.types.ndarray(dtype=ti.i32, ndim=4)
+D2 = ti.types.ndarray(dtype=ti.f64, ndim=2)
+D3 = ti.types.ndarray(dtype=ti.f64, ndim=3)
+N_GSUM = 16  # per body on the grid: m, m x (3), m v (3), m x × v (3), m x x^T (6)
 S4 = ti.types.ndarray(dtype=ti.f32, ndim=4)
 
 
@@ -66,10 +80,216 @@ class Spec(NamedTuple):
     """What a kernel is specialised to (hashable; the build cache key)."""
 
     combos: tuple        # ((elasticity name, plasticity name, fracture on/off), ...)
-    boundary: str        # slip | sticky
+    boundary: str        # slip | sticky (domain walls)
     damping: bool        # whether grid damping is applied
     counts: tuple        # (surface, cuboid, acceleration, translation, rotation) dynamics rows
+    static: bool         # whether there are level-set colliders (static geometry)
     private_grid: bool   # CPU: one grid per chunk of particles, no atomics; CUDA: one grid, atomics
+    p2g: str = "atomic"  # atomic: one add per particle and node; coarsened: one per run of equal bases (p2g_sorted.py)
+    run: int = 0         # coarsened P2G on one grid: particles per thread; P2G.CELL: per sorted cell; 0: unused
+
+
+@ti.func
+def _box_sdf(xp, centre, half):
+    """Signed distance (positive outside) of point ``xp`` to the box centre +- half."""
+    q = ti.abs(xp - centre) - half
+    return ti.max(q, 0.0).norm() + ti.min(q.max(), 0.0)
+
+
+@ti.func
+def _box_normal(xp, centre, half):
+    """Outward unit normal of the box at ``xp`` (the gradient of :func:`_box_sdf`)."""
+    rel = xp - centre
+    q = ti.abs(rel) - half
+    sgn = ti.Vector([1.0 if rel[a] >= 0.0 else -1.0 for a in ti.static(range(3))], dt=ti.f32)
+    n = ti.Vector.zero(ti.f32, 3)
+    if q.max() > 0.0:
+        n = ti.max(q, 0.0) * sgn
+        n /= ti.max(n.norm(), 1e-20)
+    else:
+        a = 0
+        if q[1] > q[a]:
+            a = 1
+        if q[2] > q[a]:
+            a = 2
+        n[a] = sgn[a]
+    return n
+
+
+def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespace:
+    """ti.funcs evaluating the boundaries (colliders.py, "Boundary placement").
+
+    Slots, in order: the 6 domain walls, the surface colliders, the level set (if ``static``)
+    (obstacles: material stays on their free side), then the cuboids (holding regions).
+    ``slot(k, x, t, dx, wall, dyn, lvl_phi, lvl_id, lvl_rows)`` -> (active, phi, n, v_c, kind,
+    friction) at a position x (m); the level set is interpolated trilinearly from its nodes.
+    ``node_slot`` is the same at grid node I (level set: the node's own value, central
+    differences for n).
+    """
+    n_surf, n_cub = counts[0], counts[1]
+    r_cub = n_surf
+    n_obst = 6 + n_surf + (1 if static else 0)
+    n_slots = n_obst + n_cub
+    wall_kind = 0.0 if boundary == "sticky" else 2.0  # slip walls remove only the outward velocity
+
+    @ti.func
+    def _vrow(dyn: ti.template(), r, c):
+        return ti.Vector([dyn[r, c], dyn[r, c + 1], dyn[r, c + 2]], dt=ti.f32)
+
+    @ti.func
+    def _lvl_at(xp, dx, lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template()):
+        G = lvl_phi.shape[0]
+        g = xp / dx
+        base = ti.min(ti.max(ti.cast(ti.floor(g), ti.i32), 0), G - 2)
+        fr = ti.min(ti.max(g - ti.cast(base, ti.f32), 0.0), 1.0)
+        phi = 0.0
+        grad = ti.Vector.zero(ti.f32, 3)
+        for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
+            v = lvl_phi[base[0] + i, base[1] + j, base[2] + k]
+            wx = fr[0] if i else 1.0 - fr[0]
+            wy = fr[1] if j else 1.0 - fr[1]
+            wz = fr[2] if k else 1.0 - fr[2]
+            phi += wx * wy * wz * v
+            grad += v * ti.Vector([(1.0 if i else -1.0) * wy * wz, (1.0 if j else -1.0) * wx * wz,
+                                   (1.0 if k else -1.0) * wx * wy], dt=ti.f32)
+        near = ti.min(ti.max(ti.cast(ti.round(g), ti.i32), 0), G - 1)
+        o = lvl_id[near[0], near[1], near[2]]
+        return phi, grad / ti.max(grad.norm(), 1e-20), lvl_rows[o, 0], lvl_rows[o, 1]
+
+    @ti.func
+    def _lvl_node(I, lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template()):
+        G = lvl_phi.shape[0]
+        grad = ti.Vector.zero(ti.f32, 3)
+        for a in ti.static(range(3)):
+            e = ti.Vector.unit(3, a, ti.i32)
+            hi = ti.min(I + e, G - 1)
+            lo = ti.max(I - e, 0)
+            grad[a] = lvl_phi[hi[0], hi[1], hi[2]] - lvl_phi[lo[0], lo[1], lo[2]]
+        o = lvl_id[I[0], I[1], I[2]]
+        return lvl_phi[I[0], I[1], I[2]], grad / ti.max(grad.norm(), 1e-20), lvl_rows[o, 0], lvl_rows[o, 1]
+
+    @ti.func
+    def _slot(k, xp, I, at_node: ti.template(), t, dx, L, wall, dyn: ti.template(),
+              lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template()):
+        """Slot ``k`` (a runtime index: one copy of the code serves all slots)."""
+        active = 1
+        phi = 1.0e30
+        n = ti.Vector([0.0, 0.0, 1.0], dt=ti.f32)
+        vc = ti.Vector.zero(ti.f32, 3)
+        kind = 0.0
+        fric = 0.0
+        if k < 6:  # domain wall: axis k // 2, lower (even k) or upper side
+            a = k // 2
+            sgn = 1.0 if k % 2 == 0 else -1.0
+            n = ti.Vector([1.0 if a == 0 else 0.0, 1.0 if a == 1 else 0.0, 1.0 if a == 2 else 0.0], dt=ti.f32) * sgn
+            xa = xp[0] if a == 0 else (xp[1] if a == 1 else xp[2])
+            phi = xa - wall if k % 2 == 0 else L - wall - xa
+            kind = wall_kind
+        elif k < 6 + n_surf:
+            r = k - 6
+            active = 1 if (t >= dyn[r, 8] and t < dyn[r, 9]) else 0
+            n = _vrow(dyn, r, 3)
+            phi = (xp - _vrow(dyn, r, 0)).dot(n)
+            kind = dyn[r, 6]
+            fric = dyn[r, 7]
+        elif k < n_obst:
+            if ti.static(static):
+                if ti.static(at_node):
+                    phi, n, kind, fric = _lvl_node(I, lvl_phi, lvl_id, lvl_rows)
+                else:
+                    phi, n, kind, fric = _lvl_at(xp, dx, lvl_phi, lvl_id, lvl_rows)
+        else:  # cuboid (holding region, sticky)
+            r = r_cub + k - n_obst
+            active = 1 if (t >= dyn[r, 9] and t < dyn[r, 10]) else 0
+            vc = _vrow(dyn, r, 6)
+            centre = _vrow(dyn, r, 0) + vc * (t - dyn[r, 9])
+            half = _vrow(dyn, r, 3)
+            phi = _box_sdf(xp, centre, half)
+            n = _box_normal(xp, centre, half)
+        return active, phi, n, vc, kind, fric
+
+    @ti.func
+    def node_rule(gv, n, vc, kind, fric):
+        """The plain node condition: sticky -> v_c; slip -> no normal relative velocity;
+        separate -> no inward normal relative velocity; friction on the tangential part."""
+        out = vc
+        if kind >= 0.5:
+            u = gv - vc
+            un = u.dot(n)
+            if kind < 1.5 or un < 0.0:
+                u -= un * n
+            if un < 0.0:
+                vt = u.norm()
+                if vt > 1e-20:
+                    u *= ti.max(0.0, vt + un * fric) / vt
+            out = vc + u
+        return out
+
+    @ti.func
+    def ghost(xn, gv, phi, n, vc, kind, fric, dx, band, grid_v: ti.template(), grid_m: ti.template()):
+        """The node velocity near a boundary (colliders.py, "Boundary placement"): behind it
+        (phi < 0) the linear extrapolation across the surface of the velocity at the mirror
+        point ``d = (band + |n|_1) dx`` in front of the surface; in front of it (0 <= phi <
+        band dx: nodes whose kernel support holds the surface) the normal velocity on the same
+        line, which gives these nodes the surface's reaction; else the plain node rule."""
+        G = grid_m.shape[1]
+        out = gv
+        done = 0
+        if phi > -GHOST_BAND * dx:
+            dm = dx * (band + ti.abs(n[0]) + ti.abs(n[1]) + ti.abs(n[2]))  # the mirror's trilinear cube lies beyond the band
+            xm = xn + (dm - phi) * n
+            g = xm / dx
+            base = ti.cast(ti.floor(g), ti.i32)
+            fr = g - ti.cast(base, ti.f32)
+            acc = ti.Vector.zero(ti.f32, 3)
+            wsum = 0.0
+            for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
+                node = base + ti.Vector([i, j, k])
+                if node.min() >= 0 and node.max() < G:
+                    if grid_m[0, node[0], node[1], node[2]] > 0.0:
+                        w = (fr[0] if i else 1.0 - fr[0]) * (fr[1] if j else 1.0 - fr[1]) * (fr[2] if k else 1.0 - fr[2])
+                        acc += w * grid_v[0, node[0], node[1], node[2]]
+                        wsum += w
+            if wsum > 1e-6:
+                vm = acc / wsum
+                u = vm - vc
+                q = phi / dm
+                un = u.dot(n)
+                if phi >= 0.0:  # in front: the normal part on the line through v_c and the mirror's
+                    own = gv - vc
+                    own_n = own.dot(n)
+                    if kind < 0.5:
+                        out = vc + q * u
+                    else:
+                        target = q * un
+                        if kind >= 1.5:  # separate: it only pushes, and only against approaching material
+                            target = q * ti.min(un, 0.0)
+                        dn = target - own_n
+                        if kind < 1.5 or dn > 0.0:
+                            ot = own - own_n * n
+                            if dn > 0.0:  # Coulomb friction of the push
+                                vt = ot.norm()
+                                if vt > 1e-20:
+                                    ot *= ti.max(0.0, vt - fric * dn) / vt
+                            out = vc + ot + target * n
+                elif kind < 0.5:
+                    out = vc + q * u
+                elif kind < 1.5 or un < 0.0:
+                    ut = u - un * n
+                    ts = ut
+                    if un < 0.0:
+                        vt = ut.norm()
+                        if vt > 1e-20:
+                            ts = ut * (ti.max(0.0, vt + un * fric) / vt)
+                    out = vc + ts + q * (ut - ts) + q * un * n
+                else:
+                    out = vm
+                done = 1
+        if done == 0:
+            out = node_rule(gv, n, vc, kind, fric)
+        return out
+
+    return SimpleNamespace(slot=_slot, node_rule=node_rule, ghost=ghost, n_obst=n_obst, n_slots=n_slots)
 
 
 @functools.lru_cache(maxsize=None)
@@ -78,16 +298,20 @@ def build(spec: Spec) -> SimpleNamespace:
     updates = [_make_update(M.ELASTICITY[e], M.PLASTICITY[p], f) for e, p, f in spec.combos]
     n_combo = len(updates)
     any_fracture = any(f for _, _, f in spec.combos)
+    rigid_cid = spec.combos.index(M.RIGID_KEY) if M.RIGID_KEY in spec.combos else -1
     n_surf, n_cub, n_acc, n_tra, n_rot = spec.counts
-    r_cub = n_surf
-    r_acc = r_cub + n_cub
+    r_acc = n_surf + n_cub
     r_tra = r_acc + n_acc
     r_rot = r_tra + n_tra
     has_actions = (n_acc + n_tra + n_rot) > 0
-    sticky = spec.boundary == "sticky"
     damping = spec.damping
     private_grid = spec.private_grid
+    coarsened = spec.p2g == "coarsened"
+    run = spec.run
+    flush = P2G.make_flush(private_grid)
     two_pi = 2.0 * math.pi
+    col = collider_funcs(spec.counts, spec.boundary, spec.static)
+    n_obst, n_slots = col.n_obst, col.n_slots
 
     @ti.func
     def _vrow(dyn: ti.template(), r, c):
@@ -102,6 +326,39 @@ def build(spec: Spec) -> SimpleNamespace:
         fx = xp * inv_dx - ti.cast(base, ti.f32)
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
         return base, fx, w
+
+    @ti.func
+    def _body_field(b, I, dx, gbody: ti.template()):
+        """The grid velocity field of rigid body b at node I: V + omega x (x_I - c) (f32)."""
+        c0 = ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
+        V = ti.Vector([gbody[b, 3], gbody[b, 4], gbody[b, 5]], dt=ti.f64)
+        w = ti.Vector([gbody[b, 6], gbody[b, 7], gbody[b, 8]], dt=ti.f64)
+        xn = ti.cast(I, ti.f64) * ti.cast(dx, ti.f64)
+        return ti.cast(V + w.cross(xn - c0), ti.f32)
+
+    @ti.func
+    def _is_rigid(m, mcombo: ti.template()):
+        r = 0
+        if ti.static(rigid_cid >= 0):
+            if ti.static(n_combo == 1):
+                r = 1
+            elif mcombo[m] == rigid_cid:
+                r = 1
+        return r
+
+    @ti.func
+    def _held(xp, t, dyn: ti.template()):
+        """(1, velocity) when xp lies inside an active cuboid (a holding region), else (0, 0)."""
+        held = 0
+        vel = ti.Vector.zero(ti.f32, 3)
+        for c in ti.static(range(n_cub)):
+            r = n_surf + c
+            if t >= dyn[r, 9] and t < dyn[r, 10]:
+                v_c = _vrow(dyn, r, 6)
+                if _box_sdf(xp, _vrow(dyn, r, 0) + v_c * (t - dyn[r, 9]), _vrow(dyn, r, 3)) < 0.0:
+                    held = 1
+                    vel = v_c
+        return held, vel
 
     @ti.func
     def _particle_actions(b, xp, vp, t, dt, dyn: ti.template()):
@@ -122,39 +379,39 @@ def build(spec: Spec) -> SimpleNamespace:
         return vp
 
     @ti.func
-    def _grid_actions(I, gv, dx, t, dyn: ti.template()):
-        xn = ti.cast(I, ti.f32) * dx
-        for s in ti.static(range(n_surf)):
-            r = s
-            if t >= dyn[r, 8] and t < dyn[r, 9]:
-                n = _vrow(dyn, r, 3)
-                if (xn - _vrow(dyn, r, 0)).dot(n) < 0.0:
-                    kind = dyn[r, 6]
-                    if kind < 0.5:
-                        gv = ti.Vector.zero(ti.f32, 3)
-                    else:
-                        vn = gv.dot(n)
-                        if kind < 1.5 or vn < 0.0:
-                            gv -= vn * n
-                        if vn < 0.0:
-                            vt = gv.norm()
-                            if vt > 1e-20:
-                                gv *= ti.max(0.0, vt + vn * dyn[r, 7]) / vt
-        for c in ti.static(range(n_cub)):
-            r = r_cub + c
-            if t >= dyn[r, 9] and t < dyn[r, 10]:
-                vel = _vrow(dyn, r, 6)
-                centre = _vrow(dyn, r, 0) + vel * (t - dyn[r, 9])
-                d = ti.abs(xn - centre)
-                if d[0] < dyn[r, 3] and d[1] < dyn[r, 4] and d[2] < dyn[r, 5]:
-                    gv = vel
-        return gv
+    def _touching(xp, t, dx, L, wall, dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
+                  lvl_rows: ti.template()):
+        """1 when the particle at xp touches (or is behind) an active obstacle."""
+        touch = 0
+        for s in range(n_obst):
+            active, phi, n, vc, kind, fric = col.slot(s, xp, ti.Vector([0, 0, 0]), False, t, dx, L, wall, dyn,
+                                                      lvl_phi, lvl_id, lvl_rows)
+            if active == 1 and phi < TOUCH * dx:
+                touch = 1
+        return touch
 
     @ti.func
-    def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
-                      p_vol: ti.template(), p_mass: ti.template(), act_bits: ti.template(), grid_v: ti.template(),
-                      grid_m: ti.template(), dyn: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G):
+    def _p2g_prepare(p, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                     p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                     act_bits: ti.template(), mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(),
+                     lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L,
+                     wall):
+        """Particle p's stencil (base, fx, w) and what it transfers: momentum mv, APIC affine
+        matrix (stress and C terms), mass; touch = 1 when it touches an obstacle (grid_c);
+        owner = 1 + the rigid body it belongs to (0: deformable)."""
         xp = x[p]
+        held = 0
+        rigid = _is_rigid(mat[p], mcombo)
+        owner = 0  # 1 + the rigid body this particle belongs to (0: deformable)
+        if ti.static(rigid_cid >= 0):
+            if rigid == 1:
+                owner = mbody[mat[p]] + 1
+        if ti.static(n_cub > 0):
+            if rigid == 0:
+                held, _ = _held(xp, t, dyn)
+        touch = 0
+        if rigid == 0 and held == 0:
+            touch = _touching(xp, t, dx, L, wall, dyn, lvl_phi, lvl_id, lvl_rows)
         base, fx, w = _stencil(xp, inv_dx, G, err)
         vp = v[p]
         if ti.static(has_actions):
@@ -164,6 +421,18 @@ def build(spec: Spec) -> SimpleNamespace:
         mass = p_mass[p]
         affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
         mv = mass * vp
+        return base, fx, w, mv, affine, mass, touch, owner
+
+    @ti.func
+    def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                      p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                      act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
+                      grid_r: ti.template(), grid_rm: ti.template(), grid_rv: ti.template(), mbody: ti.template(),
+                      dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template(),
+                      err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
+        base, fx, w, mv, affine, mass, touch, owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                                                                   act_bits, mbody, dyn, lvl_phi, lvl_id, lvl_rows,
+                                                                   err, dt, t, dx, inv_dx, G, L, wall)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, ti.f32) - fx) * dx
@@ -176,61 +445,241 @@ def build(spec: Spec) -> SimpleNamespace:
             else:
                 grid_v[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
                 grid_m[0, node[0], node[1], node[2]] += weight * mass
+            if touch == 1:
+                grid_c[c, node[0], node[1], node[2]] = 1.0
+            if ti.static(rigid_cid >= 0):
+                if owner > 0:  # the body's mass at the node (the highest index owns it where bodies meet)
+                    if ti.static(private_grid):
+                        grid_r[c, node[0], node[1], node[2]] = ti.max(grid_r[c, node[0], node[1], node[2]], owner)
+                        grid_rm[c, node[0], node[1], node[2]] = grid_rm[c, node[0], node[1], node[2]] + weight * mass
+                        grid_rv[c, node[0], node[1], node[2]] = grid_rv[c, node[0], node[1], node[2]] + weight * (mv + affine @ dpos)
+                    else:
+                        ti.atomic_max(grid_r[0, node[0], node[1], node[2]], owner)
+                        grid_rm[0, node[0], node[1], node[2]] += weight * mass
+                        grid_rv[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
+
+    @ti.func
+    def _p2g_runs(p0, p1, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+                  p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                  act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
+                  mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
+                  lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
+        """Coarsened P2G of particles p0..p1-1 (p2g_sorted.py): sums in registers while the
+        stencil base stays the same, one write of the 27 nodes per run (and of grid_c when a
+        particle of the run touches an obstacle: the same nodes)."""
+        acc = P2G.acc_zero()
+        cur = ti.Vector([-1, -1, -1])  # the run's base (none yet)
+        touch_run = 0
+        for p in range(p0, p1 + 1):  # p1: past the end, closes the last run (one flush site: less code)
+            base = ti.Vector([-2, -2, -2])
+            fx = ti.Vector.zero(ti.f32, 3)
+            mv = ti.Vector.zero(ti.f32, 3)
+            affine = ti.Matrix.zero(ti.f32, 3, 3)
+            mass = 0.0
+            touch = 0
+            if p < p1:
+                # no rigid bodies here (the solver uses the atomic transfer with them): owner is 0
+                base, fx, _w, mv, affine, mass, touch, _owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                                                                       act_bits, mbody, dyn, lvl_phi, lvl_id,
+                                                                       lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+            if not P2G.same_base(base, cur):
+                if cur[0] >= 0:
+                    flush(acc, cur, c, grid_v, grid_m)
+                    if touch_run == 1:
+                        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                            grid_c[c, cur[0] + i, cur[1] + j, cur[2] + k] = 1.0
+                    acc = P2G.acc_zero()
+                    touch_run = 0
+                cur = base
+            if p < p1:
+                P2G.acc_add(acc, fx, dx, mv, affine, mass)
+                touch_run = ti.max(touch_run, touch)
 
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
-                grid_v: V4, grid_m: S4, mparams: S2, mcombo: I1, dyn: S2, err: I1,
-                dt: ti.f32, t: ti.f32, dx: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32):
+                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
+                mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, dt: ti.f32,
+                t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1):
+        # the rigid bodies' grid projection (1-element when no instance is rigid): grid_r
+        # [T,G,G,G] i32 owner (1 + body; + covered, - fringe), grid_rm [T,G,G,G] and grid_rv
+        # [T,G,G,G] vec3 the rigid particles' mass and momentum (then velocity), mbody [K] i32
+        # body of each material (-1: none), gpart [G, B, N_GSUM] f64 per-slab sums, gbody
+        # [B, 10] f64 per body: centre, V, omega of its grid field, covering mass (input)
         inv_dx = 1.0 / dx
         n_chunks = grid_m.shape[0]
         G = grid_m.shape[1]
+        L = dx * ti.cast(G, ti.f32)
         P = x.shape[0]
         for I in ti.grouped(grid_m):
             grid_v[I] = ti.Vector.zero(ti.f32, 3)
             grid_m[I] = 0.0
+            grid_c[I] = 0.0
+            if ti.static(rigid_cid >= 0):
+                grid_r[I] = 0
+                grid_rm[I] = 0.0
+                grid_rv[I] = ti.Vector.zero(ti.f32, 3)
         # P2G
-        if ti.static(private_grid):
+        if ti.static(coarsened and private_grid):
+            for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
+                _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                          act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
+                          inv_dx, G, L, wall)
+        elif ti.static(coarsened and run == P2G.CELL):
+            for k in range(cell_start.shape[0] - 1):  # one thread per cell of the last sort
+                p0 = cell_start[k]
+                p1 = cell_start[k + 1]
+                if p1 > p0:
+                    _p2g_runs(p0, p1, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                              mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+        elif ti.static(coarsened):
+            for r in range((P + run - 1) // run):  # one thread per `run` consecutive particles
+                _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                          act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
+                          inv_dx, G, L, wall)
+        elif ti.static(private_grid):
             for c in range(n_chunks):  # parallel over chunks, serial inside a chunk
                 for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-                    _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, act_bits, grid_v, grid_m, dyn, err,
-                                  dt, t, dx, inv_dx, G)
+                    _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                                  grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
         else:
             for p in range(P):
-                _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, act_bits, grid_v, grid_m, dyn, err,
-                              dt, t, dx, inv_dx, G)
-        # grid update (the chunks' grids are summed into chunk 0)
+                _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                              grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+        # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
         for i, j, k in ti.ndrange(G, G, G):
             m = grid_m[0, i, j, k]
             mom = grid_v[0, i, j, k]
+            touch = grid_c[0, i, j, k]
             if ti.static(private_grid):
                 for c in range(1, n_chunks):
                     m += grid_m[c, i, j, k]
                     mom += grid_v[c, i, j, k]
+                    touch += grid_c[c, i, j, k]
+            grid_c[0, i, j, k] = touch
+            if ti.static(rigid_cid >= 0):
+                owner = grid_r[0, i, j, k]
+                rm = grid_rm[0, i, j, k]
+                rmom = grid_rv[0, i, j, k]
+                if ti.static(private_grid):
+                    for c in range(1, n_chunks):
+                        owner = ti.max(owner, grid_r[c, i, j, k])
+                        rm += grid_rm[c, i, j, k]
+                        rmom += grid_rv[c, i, j, k]
+                rv = ti.Vector.zero(ti.f32, 3)
+                if rm > 0.0:
+                    rv = rmom / rm + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
+                    if ti.static(damping):
+                        rv *= damp
+                grid_r[0, i, j, k] = owner
+                grid_rm[0, i, j, k] = rm
+                grid_rv[0, i, j, k] = rv
+            gv = ti.Vector.zero(ti.f32, 3)
             if m > 0.0:
-                I = ti.Vector([i, j, k])
-                gv = mom / m
-                gv += dt * ti.Vector([gx, gy, gz], dt=ti.f32)
+                gv = mom / m + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
                 if ti.static(damping):
                     gv *= damp
-                if ti.static(n_surf + n_cub > 0):
-                    gv = _grid_actions(I, gv, dx, t, dyn)
-                for d in ti.static(range(3)):
-                    if I[d] < BOUND:
-                        if ti.static(sticky):
-                            gv = ti.Vector.zero(ti.f32, 3)
-                        elif gv[d] < 0.0:
-                            gv[d] = 0.0
-                    if I[d] > G - BOUND:
-                        if ti.static(sticky):
-                            gv = ti.Vector.zero(ti.f32, 3)
-                        elif gv[d] > 0.0:
-                            gv[d] = 0.0
-                grid_v[0, i, j, k] = gv
-            else:
-                grid_v[0, i, j, k] = ti.Vector.zero(ti.f32, 3)
-        # G2P, F update, return map, stress of the new F
+            grid_m[0, i, j, k] = m
+            grid_v[0, i, j, k] = gv
+        if ti.static(rigid_cid >= 0):
+            # rigid bodies as moving colliders (rigid.py "Coupling"): a node where a body's
+            # particles transfer is covered by it where the rigid mass there is at least gbody[b, 9]
+            # (half that of a node inside it: the nodes inside its surface), else in its fringe.
+            # The body takes the whole momentum and angular momentum of the nodes it covers (its
+            # own, the soft material's there, the stress impulses) and of the rigid mass in its
+            # fringe; covered nodes then move with its rigid motion, fringe nodes keep the soft
+            # material's own velocity (the rigid particles read the body's field there)
+            B = gbody.shape[0]
+            for i, j, k in ti.ndrange(G, G, G):
+                o = grid_r[0, i, j, k]
+                if o > 0:
+                    if grid_rm[0, i, j, k] < gbody[o - 1, 9]:
+                        grid_r[0, i, j, k] = -o
+            for i in range(G):  # per x slab (fixed summation order: reproducible)
+                for b in range(B):
+                    for q in ti.static(range(N_GSUM)):
+                        gpart[i, b, q] = 0.0
+                for j, k in ti.ndrange(G, G):
+                    o = grid_r[0, i, j, k]
+                    m = ti.cast(grid_m[0, i, j, k], ti.f64)
+                    vn = ti.cast(grid_v[0, i, j, k], ti.f64)
+                    if o < 0:
+                        m = ti.cast(grid_rm[0, i, j, k], ti.f64)
+                        vn = ti.cast(grid_rv[0, i, j, k], ti.f64)
+                    if o != 0 and m > 0.0:
+                        b = ti.abs(o) - 1
+                        xn = ti.Vector([i, j, k], dt=ti.f64) * ti.cast(dx, ti.f64)
+                        xv = xn.cross(vn)
+                        row = [m, m * xn[0], m * xn[1], m * xn[2], m * vn[0], m * vn[1], m * vn[2], m * xv[0],
+                               m * xv[1], m * xv[2], m * xn[0] * xn[0], m * xn[1] * xn[1], m * xn[2] * xn[2],
+                               m * xn[0] * xn[1], m * xn[0] * xn[2], m * xn[1] * xn[2]]
+                        for q in ti.static(range(N_GSUM)):
+                            gpart[i, b, q] += row[q]
+            ti.loop_config(serialize=True)
+            for b in range(B):
+                acc = ti.Vector.zero(ti.f64, N_GSUM)
+                for i in range(G):
+                    for q in ti.static(range(N_GSUM)):
+                        acc[q] += gpart[i, b, q]
+                c0 = ti.Vector.zero(ti.f64, 3)
+                V = ti.Vector.zero(ti.f64, 3)
+                w = ti.Vector.zero(ti.f64, 3)
+                if acc[0] > 0.0:
+                    Mb = acc[0]
+                    c0 = ti.Vector([acc[1], acc[2], acc[3]], dt=ti.f64) / Mb
+                    Pb = ti.Vector([acc[4], acc[5], acc[6]], dt=ti.f64)
+                    V = Pb / Mb
+                    Lc = ti.Vector([acc[7], acc[8], acc[9]], dt=ti.f64) - c0.cross(Pb)  # about c0
+                    S = ti.Matrix([[acc[10], acc[13], acc[14]], [acc[13], acc[11], acc[15]],
+                                   [acc[14], acc[15], acc[12]]], dt=ti.f64) - Mb * c0.outer_product(c0)
+                    Ic = (S[0, 0] + S[1, 1] + S[2, 2]) * ti.Matrix.identity(ti.f64, 3) - S
+                    w = Ic.inverse() @ Lc
+                for q in ti.static(range(3)):
+                    gbody[b, q] = c0[q]
+                    gbody[b, 3 + q] = V[q]
+                    gbody[b, 6 + q] = w[q]
+            for i, j, k in ti.ndrange(G, G, G):
+                o = grid_r[0, i, j, k]
+                m = grid_m[0, i, j, k]
+                if o != 0 and m > 0.0:
+                    vb = _body_field(ti.abs(o) - 1, ti.Vector([i, j, k]), dx, gbody)
+                    if o > 0:
+                        grid_v[0, i, j, k] = vb
+                    else:  # fringe: the soft material's own momentum (none: the body's field)
+                        rm = grid_rm[0, i, j, k]
+                        out = vb
+                        if m - rm > FRINGE_SOFT * m:
+                            out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
+                        grid_v[0, i, j, k] = out
+        # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
+        for i, j, k in ti.ndrange(G, G, G):
+            gv = grid_v[0, i, j, k]
+            if grid_m[0, i, j, k] > 0.0:
+                I = ti.Vector([i, j, k])
+                xn = ti.cast(I, ti.f32) * dx
+                engaged = grid_c[0, i, j, k] > 0.0
+                for s in range(n_slots):
+                    active, phi, n, vc, kind, fric = col.slot(s, xn, I, True, t, dx, L, wall, dyn, lvl_phi, lvl_id,
+                                                              lvl_rows)
+                    # obstacles act where material touches them, on the nodes behind them and
+                    # those in front whose support holds the surface; cuboids (holding regions)
+                    # on every node inside
+                    if active == 1:
+                        if s < n_obst:
+                            if engaged and phi < FRONT_BAND * dx:
+                                gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, FRONT_BAND, grid_v, grid_m)
+                        elif phi < 0.0:
+                            gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, 0.0, grid_v, grid_m)
+            grid_b[i, j, k] = gv
+        # G2P, F update, return map, stress of the new F; boundaries on deformable particles
         for p in x:
             xp = x[p]
+            m = mat[p]
+            rigid = _is_rigid(m, mcombo)
+            held = 0
+            hv = ti.Vector.zero(ti.f32, 3)
+            if ti.static(n_cub > 0):
+                if rigid == 0:
+                    held, hv = _held(xp, t, dyn)
             base, fx, w = _stencil(xp, inv_dx, G, err)
             new_v = ti.Vector.zero(ti.f32, 3)
             new_C = ti.Matrix.zero(ti.f32, 3, 3)
@@ -238,15 +687,38 @@ def build(spec: Spec) -> SimpleNamespace:
                 offset = ti.Vector([i, j, k])
                 dpos = (ti.cast(offset, ti.f32) - fx) * dx
                 node = base + offset
-                g_v = grid_v[0, node[0], node[1], node[2]]
+                g_v = grid_b[node[0], node[1], node[2]]
+                if ti.static(rigid_cid >= 0):
+                    if rigid == 1:  # the field of the body owning the node (boundaries: rigid.py)
+                        o = grid_r[0, node[0], node[1], node[2]]
+                        if o != 0:
+                            g_v = _body_field(ti.abs(o) - 1, node, dx, gbody)
+                        else:
+                            g_v = grid_v[0, node[0], node[1], node[2]]
                 weight = w[i][0] * w[j][1] * w[k][2]
                 new_v += weight * g_v
                 new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
+            x_new = xp + dt * new_v
+            if held == 1:
+                # inside a cuboid: the particle stays with the cuboid, but carries the field the
+                # ghost nodes extend into it (so stress and momentum stay continuous at the face)
+                x_new = xp + dt * hv
+            elif rigid == 0:  # obstacles: back onto the surface, no inward velocity
+                for s in range(n_obst):
+                    active, phi, n, vc, kind, fric = col.slot(s, x_new, ti.Vector([0, 0, 0]), False, t, dx, L,
+                                                              wall, dyn, lvl_phi, lvl_id, lvl_rows)
+                    if active == 1 and phi < 0.0:
+                        x_new -= phi * n
+                        if kind < 0.5:
+                            new_v = vc
+                        else:
+                            un = (new_v - vc).dot(n)
+                            if un < 0.0:
+                                new_v -= un * n
             v[p] = new_v
             C[p] = new_C
-            x[p] = xp + dt * new_v
+            x[p] = x_new
             F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
-            m = mat[p]
             q = _qrow(mparams, m)
             cid = 0
             if ti.static(n_combo > 1):
@@ -264,7 +736,7 @@ def build(spec: Spec) -> SimpleNamespace:
             if ti.static(any_fracture):
                 ep[p] = ep_p
 
-    return SimpleNamespace(substep=substep, spec=spec)
+    return SimpleNamespace(substep=substep, spec=spec, colliders=col)
 
 
 @functools.lru_cache(maxsize=None)

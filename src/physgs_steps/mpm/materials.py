@@ -189,6 +189,21 @@ class FluidElasticity(Elasticity):
         return lam * J * (J - 1.0) * _eye()
 
 
+class Rigid(Elasticity):
+    """``tau = 0``: the particles of a rigid instance carry no stress.  After every substep
+    their velocities are projected onto the body's rigid motion and F is set to its rotation
+    (:mod:`physgs_steps.mpm.rigid`); with no elastic waves, the model does not limit the time
+    step.  Used through :attr:`Material.rigid`, not as a params.json elasticity name."""
+
+    name = "rigid"
+    needs_svd = False
+
+    @staticmethod
+    @ti.func
+    def kirchhoff(F, J, mu, lam):
+        return ti.Matrix.zero(ti.f32, 3, 3)
+
+
 
 # ============================================================================ plasticity
 class Plasticity:
@@ -370,7 +385,9 @@ class Fracture:
         return U @ _diag(ti.min(tt, 0.0) + (1.0 - d) * ti.max(tt, 0.0)) @ U.transpose()
 
 
-ELASTICITY = {c.name: c for c in (FixedCorotated, NeoHookean, StVKHencky, Volume, FluidElasticity)}
+ELASTICITY = {c.name: c for c in (FixedCorotated, NeoHookean, StVKHencky, Volume, FluidElasticity, Rigid)}
+RIGID_MODELS = ("rigid", "identity")  # the kernel's (elasticity, plasticity) pair of a rigid instance
+RIGID_KEY = RIGID_MODELS + (False,)  # ... and its kernel key (no fracture)
 PLASTICITY = {c.name: c for c in (Identity, JClamp, VonMises, DruckerPrager, MohrCoulomb, FluidPlasticity)}
 
 
@@ -409,6 +426,13 @@ class Material:
 
     ``name`` is the instance name used in messages; ``preset`` the knowledge-base material
     it came from (if any).  ``velocity`` is the instance's initial velocity in m/s.
+
+    ``rigid``: the instance moves as one rigid body (:mod:`physgs_steps.mpm.rigid`); its
+    elasticity/plasticity and E are then unused by the simulation (they are what the
+    ``no_rigid`` ablation simulates).  ``fixed`` (rigid only): it does not move at all and
+    does not enter the MPM; its particles become a static level-set collider
+    (:mod:`physgs_steps.mpm.colliders`) with surface kind ``surface`` (sticky | slip |
+    separate) and Coulomb ``friction``.
     """
 
     elasticity: str
@@ -426,6 +450,10 @@ class Material:
     name: str = "material"
     preset: str | None = None
     velocity: tuple = (0.0, 0.0, 0.0)
+    rigid: bool = False
+    fixed: bool = False
+    surface: str = "separate"
+    friction: float = 0.5
     extra: dict = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
@@ -454,6 +482,15 @@ class Material:
         if len(v) != 3 or not all(math.isfinite(c) for c in v):
             raise ConfigError(f"{where}: velocity", f"must be 3 finite numbers (m/s), got {self.velocity!r}")
         object.__setattr__(self, "velocity", v)
+        for flag in ("rigid", "fixed"):
+            if not isinstance(getattr(self, flag), (bool, np.bool_)):
+                raise ConfigError(f"{where}: {flag}", f"must be true or false, got {getattr(self, flag)!r}")
+            object.__setattr__(self, flag, bool(getattr(self, flag)))
+        if self.fixed and not self.rigid:
+            raise ConfigError(f"{where}: fixed", "only a rigid instance can be fixed (set rigid: true as well)")
+        if self.surface not in ("sticky", "slip", "separate"):
+            raise ConfigError(f"{where}: surface", f"must be sticky, slip or separate, got {self.surface!r}")
+        _check_number(f"{where}: friction", self.friction, lo=0.0)
 
     # ------------------------------------------------------------------ derived
     @property
@@ -466,9 +503,15 @@ class Material:
 
     @property
     def wave_speed(self) -> float:
-        """P-wave speed ``sqrt((lam + 2 mu) / rho)`` in m/s (the CFL limit's speed)."""
+        """P-wave speed ``sqrt((lam + 2 mu) / rho)`` in m/s of the elastic parameters."""
         mu, lam = lame(self.E, self.nu)
         return math.sqrt((lam + 2.0 * mu) / self.density)
+
+    @property
+    def cfl_speed(self) -> float:
+        """The wave speed that limits the time step (m/s): :attr:`wave_speed` for a deformable
+        instance, 0 for a rigid one (it carries no elastic waves)."""
+        return 0.0 if self.rigid else self.wave_speed
 
     def max_E_for_wave_speed(self, c: float) -> float:
         """The largest E [Pa] whose wave speed is at most ``c`` m/s (same nu and density)."""
@@ -494,7 +537,14 @@ class Material:
 
     @property
     def models(self) -> tuple[str, str]:
-        return self.elasticity, self.plasticity
+        """The (elasticity, plasticity) pair the kernels run: :data:`RIGID_MODELS` for a rigid
+        instance, else the instance's own models."""
+        return RIGID_MODELS if self.rigid else (self.elasticity, self.plasticity)
+
+    @property
+    def role(self) -> str:
+        """``fixed`` (static collider), ``rigid`` (free rigid body) or ``deformable``."""
+        return "fixed" if self.fixed else "rigid" if self.rigid else "deformable"
 
     @property
     def fractures(self) -> bool:
@@ -502,8 +552,9 @@ class Material:
 
     @property
     def kernel_key(self) -> tuple[str, str, bool]:
-        """What the kernels are specialised to: (elasticity, plasticity, fracture on/off)."""
-        return self.elasticity, self.plasticity, self.fractures
+        """What the kernels are specialised to: (elasticity, plasticity, fracture on/off);
+        :data:`RIGID_KEY` for a rigid instance (no stress, no fracture)."""
+        return RIGID_KEY if self.rigid else (self.elasticity, self.plasticity, self.fractures)
 
     def describe(self) -> str:
         """One line naming the instance, its models and parameters (used in error messages)."""
@@ -517,6 +568,10 @@ class Material:
         if self.fractures:
             pp += f", fracture_strain={self.fracture_strain:g}, fracture_softening={self.fracture_softening:g}"
         tag = f"{self.preset}: " if self.preset else ""
+        if self.rigid:
+            what = (f"fixed rigid (static collider, {self.surface}, friction {self.friction:g})" if self.fixed
+                    else "free rigid body")
+            return f"'{self.name}' ({tag}{what}, density={self.density:g} kg/m^3)"
         return (f"'{self.name}' ({tag}{self.elasticity}/{self.plasticity}, E={self.E:.3g} Pa, nu={self.nu:g}, "
                 f"density={self.density:g} kg/m^3{pp})")
 
@@ -554,6 +609,10 @@ class Material:
                                     else DEFAULT_FRACTURE_SOFTENING),
                 name=name, preset=entry.get("material"),
                 velocity=tuple(entry.get("velocity") or (0.0, 0.0, 0.0)),
+                rigid=entry.get("rigid") if entry.get("rigid") is not None else False,
+                fixed=entry.get("fixed") if entry.get("fixed") is not None else False,
+                surface=entry.get("surface") or "separate",
+                friction=_num(entry["friction"]) if entry.get("friction") is not None else 0.5,
             )
         except (TypeError, ValueError) as e:
             raise ConfigError(key, str(e)) from None
@@ -576,7 +635,7 @@ def preset(material: str, name: str | None = None, **overrides: Any) -> Material
         fracture_strain=pp.get("fracture_strain"),
         fracture_softening=(pp.get("fracture_softening") if pp.get("fracture_softening") is not None
                             else DEFAULT_FRACTURE_SOFTENING),
-        name=name or e["name"], preset=e["name"],
+        name=name or e["name"], preset=e["name"], rigid=bool(e.get("rigid", False)),
     )
     fields.update(overrides)
     return Material(**fields)

@@ -42,7 +42,11 @@ import taichi as ti
 
 from ..errors import ConfigError, InputError
 from . import kernels as K
+from . import p2g_sorted as P2G
 from .backend import ensure_taichi
+from . import colliders
+from . import rigid as rigid_mod
+from .colliders import StaticGeometry
 from .dynamics import BoundDynamics, Dynamics
 from .materials import Material
 
@@ -66,11 +70,20 @@ class MPMSolver:
         grid_mode: how P2G accumulates: ``private`` (one grid per CPU thread's chunk of
             particles, plain adds, reproducible), ``atomic`` (one grid, float atomics), or
             ``auto`` (private on the CPU, atomic on CUDA).
+        p2g: how P2G writes the grid (p2g_sorted.py): ``atomic`` (every particle adds to its
+            27 nodes), ``coarsened`` (a thread sums a run of consecutive particles with the
+            same stencil base in registers and writes the nodes once per run; particles are
+            re-sorted on the device every ``resort_every`` substeps), or ``auto``
+            (p2g_sorted.AUTO per arch).  Results equal up to float summation order.
+        run_length: coarsened P2G on one grid (CUDA): particles per thread, or ``"cell"``: one
+            thread per stencil-base cell of the last sort.
+        resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load).
     """
 
     def __init__(self, materials: Sequence[Material], *, n_grid: int = 32, domain_size: float = 1.0,
                  dynamics: Dynamics | None = None, backend: str = "cpu", labels: Sequence[int] | None = None,
-                 sort_particles: bool = True, grid_mode: str = "auto"):
+                 sort_particles: bool = True, grid_mode: str = "auto", static: Sequence[StaticGeometry] = (),
+                 p2g: str = "auto", run_length: int = P2G.RUN_LENGTH, resort_every: int = P2G.RESORT_EVERY):
         if not materials:
             raise ConfigError("materials", "at least one material is needed")
         if int(n_grid) < 8:
@@ -84,12 +97,24 @@ class MPMSolver:
         self.dx = self.L / self.n_grid
         self.inv_dx = 1.0 / self.dx
         self.dynamics = dynamics if dynamics is not None else Dynamics.free()
+        colliders.check_wall_margin(self.dynamics.wall_margin, self.n_grid)
+        self._static_in = list(static)
         self.arch = ensure_taichi(backend)
         self.sort_particles = sort_particles
         if grid_mode not in ("auto", "private", "atomic"):
             raise ConfigError("grid_mode", f"must be auto, private or atomic, got {grid_mode!r}")
         self.private_grid = grid_mode == "private" or (grid_mode == "auto" and self.arch == "cpu")
         self.n_chunks = max(1, min(os.cpu_count() or 1, MAX_CHUNKS)) if self.private_grid else 1
+        self.p2g = P2G.resolve(p2g, self.arch)
+        run_length = P2G.CELL if run_length == "cell" else run_length
+        if not isinstance(run_length, int) or (run_length < 1 and run_length != P2G.CELL) or int(resort_every) < 0:
+            raise ConfigError("p2g", f"run_length must be >= 1 or 'cell' and resort_every >= 0, got {run_length!r}, "
+                                     f"{resort_every!r}")
+        self.run_length = run_length
+        self.resort_every = int(resort_every)
+        self._sorter = None  # coarsened P2G: the device sort (p2g_sorted.DeviceSort)
+        self._since_sort = 0
+        self.sort_generation = 0  # counts device re-sorts (storage order changes)
         self.combos = tuple(sorted({m.kernel_key for m in self.materials}))
         self.time = 0.0
         self._stagger = 0.0  # dt the stored velocities are staggered with (v_{n-1/2} = v_n - dt/2 g)
@@ -104,8 +129,12 @@ class MPMSolver:
                       velocity: np.ndarray | None = None) -> None:
         """Load particles at rest (F = I, C = 0) with their initial velocities.
 
+        The particles of a fixed rigid instance do not enter the MPM: they become static
+        geometry (a level-set collider, colliders.py) and keep their place in every state
+        returned.  Each free rigid instance becomes one rigid body (rigid.py).
+
         Args:
-            x: [P, 3] positions in domain units (inside the grid's stencil range).
+            x: [P, 3] positions in domain units (inside the domain walls).
             vol: [P] particle volumes in domain units^3 (> 0).
             material: [P] int, index into ``materials``.
             velocity: [P, 3] initial velocities in m/s; default: each material's ``velocity``
@@ -121,31 +150,119 @@ class MPMSolver:
             raise InputError("particles", f"material index out of range 0..{len(self.materials) - 1}")
         if np.any(vol <= 0):
             raise InputError("particles", "particle volumes must be > 0")
-        self._check_inside(x)
+        fixed_k = [k for k, m in enumerate(self.materials) if m.fixed]
+        fixed = np.isin(material, fixed_k)
+        if fixed.all():
+            raise InputError("particles", "every instance is fixed (static geometry): nothing to simulate")
+        self._check_inside(x[~fixed])
         names = [m.name for m in self.materials]
         if velocity is None:
             base = np.array([m.velocity for m in self.materials], np.float64)
             velocity = self.dynamics.initial_velocities(x, material, base, names, self.labels)
         velocity = _as_array(velocity, np.float64, (P, 3), "velocity")
-        self.bound = self.dynamics.bind(x, material, names, self.labels, self.L)
-        self._perm = self._sort_order(x) if self.sort_particles else np.arange(P)
-        self.n_particles = P
-        self._allocate(P)
-        perm = self._perm
-        self._mat.from_numpy(material[perm].astype(np.int32))
+        # fixed instances -> static geometry; the rest is simulated
+        self._n_input = P
+        self._sim_rows = np.flatnonzero(~fixed)
+        self._static_rows = np.flatnonzero(fixed)
+        self._x_static = x[fixed].astype(np.float32)
+        self._static_fixed = [StaticGeometry(x[material == k], spacing=float(np.median(vol[material == k])) ** (1 / 3),
+                                             surface=self.materials[k].surface, friction=self.materials[k].friction,
+                                             name=self.materials[k].name)
+                              for k in fixed_k if np.any(material == k)]
+        bound = self.dynamics.bind(x, material, names, self.labels, self.L)
+        sim = self._sim_rows
+        xs, ms = x[sim], material[sim]
+        self.bound = BoundDynamics(**{**bound.__dict__, "act_bits": bound.act_bits[sim]})
+        perm = self._sort_order(xs) if self.sort_particles else np.arange(len(xs))
+        Ps = len(xs)
+        self.n_particles = Ps
+        self._allocate(Ps)
+        self._order.from_numpy(perm.astype(np.int32))
+        self._perm = perm
+        self._mat.from_numpy(ms[perm].astype(np.int32))
         self._act_bits.from_numpy(self.bound.act_bits[perm])
-        p_vol = vol[perm] * self.L ** 3
-        density = np.array([m.density for m in self.materials])[material[perm]]
+        p_vol = vol[sim][perm] * self.L ** 3
+        density = np.array([m.density for m in self.materials])[ms[perm]]
         self._p_vol.from_numpy(p_vol.astype(np.float32))
-        self._p_mass.from_numpy((p_vol * density).astype(np.float32))
+        p_mass = (p_vol * density).astype(np.float32)
+        self._p_mass.from_numpy(p_mass)
         self._dyn = _ndarray_from(self.bound.table, ti.f32)
-        spec = K.Spec(self.combos, *self.bound.spec(), self.private_grid)
+        self._setup_static()
+        if self.p2g == "coarsened" and any(m.rigid and not m.fixed for m in self.materials):
+            # the coarsened transfer does not deposit the rigid bodies' own grids (grid_r, grid_rm,
+            # grid_rv: the moving-collider coupling); with a free rigid body the atomic one runs
+            self.p2g = "atomic"
+        self._sorting = self.p2g == "coarsened" and self._can_resort()
+        run = self.run_length if self.p2g == "coarsened" and not self.private_grid else 0  # else unused: one build
+        if run == P2G.CELL and not self._sorting:
+            run = P2G.RUN_LENGTH  # cells need the device sort's ranges
+        spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid, p2g=self.p2g,
+                      run=run)
         self._k = K.build(spec)
+        self._setup_rigid(xs[perm] * self.L, p_mass.astype(np.float64), ms[perm])
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
         self.set_state(x, velocity / self.L, np.zeros((P, 3, 3)), eye)
         if np.ptp(velocity, axis=0).max() > 0:  # a non-uniform field: C = its APIC velocity gradient
             self.init_affine()
         self.time = 0.0
+        self._sorter = None
+        self._cell_start = _ndarray_from(np.array([0, self.n_particles], np.int32), ti.i32)  # read with CELL runs only
+        if self._sorting:
+            self._sorter = P2G.DeviceSort(self.n_particles, self.n_grid, self.arch)
+            self._cell_start = self._sorter.count
+            self.resort()
+
+    # ------------------------------------------------------------------ storage order
+    @property
+    def _perm(self) -> np.ndarray:
+        """[P] the caller's row of each storage slot (particles are stored sorted; a device
+        re-sort changes it: read back from ``_order`` when needed)."""
+        if self._perm_gen != self.sort_generation:
+            self._perm_np = self._order.to_numpy().astype(np.int64)
+            self._perm_gen = self.sort_generation
+        return self._perm_np
+
+    @_perm.setter
+    def _perm(self, value: np.ndarray) -> None:
+        self._perm_np = np.asarray(value, np.int64)
+        self._perm_gen = self.sort_generation
+
+    def _can_resort(self) -> bool:
+        """Whether the storage order may change on the device (not with sort_particles off, nor
+        with free rigid instances: rigid.RigidBodies keeps their particles' storage slots)."""
+        return self.sort_particles and not any(m.rigid and not m.fixed for m in self.materials)
+
+    def resort(self) -> None:
+        """Re-sort the particles by stencil base node on the device (coarsened P2G; a no-op
+        otherwise).  Rows in ``get_state`` etc. stay in the caller's order."""
+        if self._sorter is None:
+            return
+        self._sorter.sort(self)
+        self.sort_generation += 1
+        self._since_sort = 0
+
+    def _setup_rigid(self, xs: np.ndarray, mass: np.ndarray, mat_sorted: np.ndarray) -> None:
+        """One rigid body per free rigid instance (storage order arrays: xs [P, 3] m, mass [P] kg)."""
+        free = [k for k, m in enumerate(self.materials) if m.rigid and not m.fixed and np.any(mat_sorted == k)]
+        self._rigid_k = free
+        self.rigid = None
+        mbody = np.full(len(self.materials), -1, np.int32)
+        mbody[free] = np.arange(len(free), dtype=np.int32)
+        self._mbody = _ndarray_from(mbody, ti.i32)
+        nb = max(len(free), 1)
+        G, T = self.n_grid, self.n_chunks
+        self.grid_r = ti.ndarray(ti.i32, (T, G, G, G) if free else (1, 1, 1, 1))
+        self._gpart = ti.ndarray(ti.f64, (G if free else 1, nb, K.N_GSUM))  # per x slab and body: grid sums
+        self.grid_rm = ti.ndarray(ti.f32, (T, G, G, G) if free else (1, 1, 1, 1))  # rigid mass per node
+        self.grid_rv = ti.ndarray(K.vec3, (T, G, G, G) if free else (1, 1, 1, 1))  # rigid momentum, velocity
+        gbody = np.zeros((nb, 10))  # per body: centre, V, omega of the covered nodes; covering mass
+        gbody[: len(free), 9] = [colliders.COVER * self.materials[k].density * self.dx ** 3 for k in free]
+        self._gbody = _ndarray_from(gbody, ti.f64)
+        if free:
+            bodies = [np.flatnonzero(mat_sorted == k) for k in free]
+            self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, self.n_chunks, [self.materials[k].name for k in free])
+            b = self.bound
+            self._kr = rigid_mod.build(b.counts, b.boundary, bool(self._static_geoms), self.private_grid)
 
     def init_affine(self, iterations: int = AFFINE_ITERATIONS) -> None:
         """Set every particle's C to the velocity gradient the APIC transfer reproduces for the
@@ -166,6 +283,11 @@ class MPMSolver:
             mat = self._mat.to_numpy()
             rho = np.array([m.density for m in self.materials])
             self._p_mass.from_numpy((self._p_mass.to_numpy() * (rho / old_rho)[mat]).astype(np.float32))
+            if self.rigid is not None and not np.allclose(rho, old_rho):
+                st = self.get_state()
+                x0 = self.x.to_numpy().astype(np.float64)
+                self._setup_rigid(x0, self._p_mass.to_numpy().astype(np.float64), mat)
+                self.set_state(st["x"], st["v"], st["C"], st["F"])
             self._update_stress()
 
     def _upload_materials(self) -> None:
@@ -186,9 +308,15 @@ class MPMSolver:
         self._p_mass = ti.ndarray(ti.f32, P)
         self._mat = ti.ndarray(ti.i32, P)
         self._act_bits = ti.ndarray(ti.i32, P)
+        self._order = ti.ndarray(ti.i32, P)  # the caller's row of each storage slot
         T = self.n_chunks
         self.grid_v = ti.ndarray(K.vec3, (T, G, G, G))
         self.grid_m = ti.ndarray(ti.f32, (T, G, G, G))
+        self.grid_c = ti.ndarray(ti.f32, (T, G, G, G))  # 1 where a particle touching an obstacle transfers
+        self.grid_b = ti.ndarray(K.vec3, (G, G, G))  # grid velocities after the boundary conditions
+        self.grid_r = ti.ndarray(ti.i32, (1, 1, 1, 1))  # rigid bodies: 1 + the body covering a node (_setup_rigid)
+        self.grid_rm = ti.ndarray(ti.f32, (1, 1, 1, 1))
+        self.grid_rv = ti.ndarray(K.vec3, (1, 1, 1, 1))
         self._err = ti.ndarray(ti.i32, 4)
         self._err.from_numpy(np.zeros(4, np.int32))
         self._stats = ti.ndarray(ti.f32, (len(self.materials), len(STAT_COLUMNS)))
@@ -201,12 +329,21 @@ class MPMSolver:
         return np.argsort(key, kind="stable")
 
     def _check_inside(self, x: np.ndarray) -> None:
-        g = x * self.n_grid
-        out = np.any((g < 0.5) | (g >= self.n_grid - 1.5), axis=1)
+        m = float(self.dynamics.wall_margin)
+        out = np.any((x < m) | (x > 1.0 - m), axis=1)
         if out.any():
-            lo, hi = 0.5 / self.n_grid, (self.n_grid - 1.5) / self.n_grid
             raise InputError("particles", f"{int(out.sum())} particles lie outside the simulation domain "
-                                          f"[{lo:.4f}, {hi:.4f})^3 (domain units, n_grid {self.n_grid})")
+                                          f"[{m:.4f}, {1.0 - m:.4f}]^3 (domain units: the domain walls stand "
+                                          f"dynamics.wall_margin = {m:g} inside the unit cube)")
+
+    def _setup_static(self) -> None:
+        """The level-set grid of the static geometry (colliders.py): the solver's ``static``
+        argument plus the fixed instances."""
+        self._static_geoms = list(self._static_in) + list(self._static_fixed)
+        phi, owner, rows = colliders.merge(self._static_geoms, self.n_grid, self.L)
+        self._lvl_phi = _ndarray_from(phi, ti.f32)
+        self._lvl_id = _ndarray_from(owner, ti.i32)
+        self._lvl_rows = _ndarray_from(rows, ti.f32)
 
     # ------------------------------------------------------------------ state
     def set_state(self, x: np.ndarray, v: np.ndarray, C: np.ndarray, F: np.ndarray,
@@ -214,14 +351,16 @@ class MPMSolver:
         """Set the state (domain units: x [P,3], v [P,3] in domain units/s at the state's time,
         C [P,3,3] in 1/s, F [P,3,3]; rows in the order given to set_particles) and recompute the
         stresses.  The next substep staggers the velocities by half its dt (module docstring).
-        ``ep`` [P]: accumulated inelastic strain of tearing materials (default 0, intact)."""
+        ``ep`` [P]: accumulated inelastic strain of tearing materials (default 0, intact).
+        Rows of fixed instances are ignored (static geometry stays where it was loaded); each
+        rigid body takes the pose and motion that best fit its particles' state."""
         self._require_particles()
-        P = self.n_particles
+        P = self._n_input
         x = _as_array(x, np.float64, (P, 3), "x")
         v = _as_array(v, np.float64, (P, 3), "v")
         C = _as_array(C, np.float64, (P, 3, 3), "C")
         F = _as_array(F, np.float64, (P, 3, 3), "F")
-        p = self._perm
+        p = self._sim_rows[self._perm]
         self.x.from_numpy((x[p] * self.L).astype(np.float32))
         self.v.from_numpy((v[p] * self.L).astype(np.float32))
         self.C.from_numpy(C[p].astype(np.float32))
@@ -229,31 +368,46 @@ class MPMSolver:
         ep = np.zeros(P) if ep is None else _as_array(ep, np.float64, (P,), "ep")
         self.ep.from_numpy(ep[p].astype(np.float32))
         self._stagger = 0.0
+        if self.rigid is not None:
+            self.rigid.fit_state(x[p] * self.L, v[p] * self.L, C[p], F[p], self._p_mass.to_numpy())
         self._update_stress()
+
+    def _full(self, a: np.ndarray, static_value) -> np.ndarray:
+        """Storage-order rows ``a`` [P_sim, ...] -> input order [P, ...] with the static rows
+        (fixed instances) set to ``static_value`` (an array [P_static, ...] or a scalar)."""
+        out = np.empty((self._n_input,) + a.shape[1:], a.dtype)
+        out[self._sim_rows[self._perm]] = a
+        out[self._static_rows] = static_value
+        return out
 
     def get_state(self) -> dict:
         """{"x", "v", "C", "F", "ep"}: float32 arrays in domain units, rows in input order; v is
         the velocity at the state's time (the stored half-step velocity plus dt/2 g); ep the
-        accumulated inelastic strain of tearing materials (0 elsewhere)."""
+        accumulated inelastic strain of tearing materials (0 elsewhere).  The rows of fixed
+        instances: their initial position, v = 0, C = 0, F = I, ep = 0."""
         self._require_particles()
-        inv = 1.0 / self.L
-        out = {}
-        for name, arr, scale in (("x", self.x, inv), ("v", self.v, inv), ("C", self.C, 1.0), ("F", self.F, 1.0),
-                                 ("ep", self.ep, 1.0)):
-            a = arr.to_numpy()
-            if name == "v" and self._stagger != 0.0:
-                a = a + (0.5 * self._stagger * self.bound.gravity).astype(np.float32)
-            b = np.empty_like(a)
-            b[self._perm] = a * np.float32(scale) if scale != 1.0 else a
-            out[name] = b
-        return out
+        inv = np.float32(1.0 / self.L)
+        v = self.v.to_numpy()
+        if self._stagger != 0.0:
+            v = v + (0.5 * self._stagger * self.bound.gravity).astype(np.float32)
+        return {"x": self._full(self.x.to_numpy() * inv, self._x_static),
+                "v": self._full(v * inv, 0.0),
+                "C": self._full(self.C.to_numpy(), 0.0),
+                "F": self._full(self.F.to_numpy(), np.eye(3, dtype=np.float32)),
+                "ep": self._full(self.ep.to_numpy(), 0.0)}
 
     def get_stress(self) -> np.ndarray:
         """[P, 3, 3] Kirchhoff stress (Pa) of the current F, rows in input order."""
-        a = self.tau.to_numpy()
-        b = np.empty_like(a)
-        b[self._perm] = a
-        return b
+        return self._full(self.tau.to_numpy(), 0.0)
+
+    @property
+    def n_input(self) -> int:
+        """Rows of the particle set given to set_particles (simulated + static)."""
+        return self._n_input
+
+    def roles(self) -> list[str]:
+        """Per material: ``deformable``, ``rigid`` (free rigid body) or ``fixed`` (static geometry)."""
+        return [m.role for m in self.materials]
 
     def _update_stress(self) -> None:
         self._kc.stress(self.F, self._mat, self._mparams, self._mcombo, self.ep, self.tau)
@@ -305,10 +459,24 @@ class MPMSolver:
             K.add_velocity(self.v, float(shift[0]), float(shift[1]), float(shift[2]))
             self._stagger = dt
         damp = math.exp(-b.damping * dt) if b.damping > 0 else 1.0
+        if self._sorter is not None and self.resort_every > 0 and self._since_sort >= self.resort_every:
+            self.resort()
+        self._since_sort += 1
         self._k.substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
-                        self._act_bits, self.grid_v, self.grid_m, self._mparams, self._mcombo, self._dyn,
-                        self._err, float(dt), float(self.time), float(self.dx),
-                        float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]), float(damp))
+                        self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_r, self.grid_rm, self.grid_rv, self._mbody,
+                        self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
+                        self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, float(dt), float(self.time),
+                        float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]),
+                        float(b.gravity[2]), float(damp), self._cell_start)
+        if self.rigid is not None:
+            rb, kr = self.rigid, self._kr
+            kr.reduce(self.x, self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_R, rb.part, rb.ct,
+                      rb.ct_count, self._dyn, self._lvl_phi, self._lvl_id, self._lvl_rows, float(self.time),
+                      float(self.dx), float(b.wall_margin), self.n_grid)
+            kr.advance(rb.part, rb.ct, rb.ct_count, rb.acc, rb.body_c, rb.body_R, rb.body_V, rb.body_w, rb.body_M,
+                       rb.body_I0inv, float(dt))
+            kr.scatter(self.x, self.v, self.C, self.F, self.tau, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R,
+                       rb.body_V, rb.body_w, rb.body_K)
         self.time += dt
 
     def stats(self) -> dict:
@@ -322,6 +490,8 @@ class MPMSolver:
         self._stats.from_numpy(init)
         K.frame_stats(self.x, self.v, self.F, self._mat, self._stats, float(self.dx), self.n_grid)
         a = self._stats.to_numpy().astype(np.float64)
+        empty = a[:, 1] > a[:, 2]  # no simulated particle (fixed instances): neutral values
+        a[empty, 1:3] = 1.0
         out = {c: a[:, i] for i, c in enumerate(STAT_COLUMNS)}
         err = self._err.to_numpy()
         out["clamped"] = int(err[0])
@@ -338,6 +508,8 @@ class MPMSolver:
         for name, arr in self._backup.items():
             arr.copy_from(getattr(self, name))
         self._backup_time = self.time
+        self._backup_order = (self.sort_generation, self._perm.copy())
+        self._backup_rigid = self.rigid.copy_state() if self.rigid is not None else None
         self._backup_stagger = self._stagger
 
     def restore_backup(self) -> None:
@@ -346,33 +518,72 @@ class MPMSolver:
             raise RuntimeError("no backup saved")
         for name, arr in self._backup.items():
             getattr(self, name).copy_from(arr)
+        self._restore_order(*self._backup_order)
         self.time = self._backup_time
+        if self.rigid is not None:
+            self.rigid.restore_state(self._backup_rigid)
         self._stagger = self._backup_stagger
+
+    def _restore_order(self, generation: int, perm: np.ndarray) -> None:
+        """After a backup's state arrays came back: if the particles were re-sorted since, put
+        the arrays the backup does not hold (mass, volume, material, action bits) into the
+        backup's storage order ``perm`` too."""
+        if generation == self.sort_generation:
+            return
+        slot = np.empty_like(self._perm)
+        slot[self._perm] = np.arange(len(slot))
+        src = slot[perm]  # current slot of each backup slot's particle
+        for name in ("_p_vol", "_p_mass", "_mat", "_act_bits"):
+            arr = getattr(self, name)
+            arr.from_numpy(arr.to_numpy()[src])
+        self._order.from_numpy(perm.astype(np.int32))
+        self.sort_generation += 1
+        self._perm = perm
+        self._since_sort = 0
 
     def gather_rows(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions [R, 3] (domain units) and F [R, 3, 3] of particle ``rows`` (input order)."""
         rows = np.asarray(rows, np.int64)
-        if not hasattr(self, "_gather_cache") or self._gather_cache[0] is not rows:
-            inv_perm = np.empty_like(self._perm)
-            inv_perm[self._perm] = np.arange(len(self._perm))
-            idx = _ndarray_from(inv_perm[rows].astype(np.int64), ti.i64)
-            R = len(rows)
-            self._gather_cache = (rows, idx, ti.ndarray(K.vec3, R), ti.ndarray(K.mat3, R))
-        _, idx, ox, oF = self._gather_cache
-        K.gather(idx, self.x, self.F, ox, oF, 1.0 / self.L)
-        return ox.to_numpy(), oF.to_numpy()
+        if not hasattr(self, "_gather_cache") or self._gather_cache[0] is not rows or \
+                self._gather_gen != self.sort_generation:
+            self._gather_gen = self.sort_generation
+            storage = np.full(self._n_input, -1, np.int64)
+            storage[self._sim_rows[self._perm]] = np.arange(self.n_particles)
+            st = storage[rows]
+            sim = np.flatnonzero(st >= 0)
+            static_pos = np.full(self._n_input, -1, np.int64)
+            static_pos[self._static_rows] = np.arange(len(self._static_rows))
+            stat = np.flatnonzero(st < 0)
+            idx = _ndarray_from(st[sim].astype(np.int64) if len(sim) else np.zeros(1, np.int64), ti.i64)
+            n = max(len(sim), 1)
+            self._gather_cache = (rows, idx, ti.ndarray(K.vec3, n), ti.ndarray(K.mat3, n), sim, stat,
+                                  static_pos[rows[stat]])
+        _, idx, ox, oF, sim, stat, spos = self._gather_cache
+        out_x = np.empty((len(rows), 3), np.float32)
+        out_F = np.empty((len(rows), 3, 3), np.float32)
+        if len(sim):
+            K.gather(idx, self.x, self.F, ox, oF, 1.0 / self.L)
+            out_x[sim] = ox.to_numpy()[: len(sim)]
+            out_F[sim] = oF.to_numpy()[: len(sim)]
+        out_x[stat] = self._x_static[spos]
+        out_F[stat] = np.eye(3, dtype=np.float32)
+        return out_x, out_F
 
     def device_bytes(self) -> int:
         """Bytes of the solver's arrays (particles, grid, tables, backup)."""
         P, G = self.n_particles, self.n_grid
-        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1)
+        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1 + 1)
         backup = 4 * (3 + 3 + 9 + 9 + 9 + 1) * P if self._backup is not None else 0
-        return per_particle * P + 16 * self.n_chunks * G ** 3 + backup
+        sort = self._sorter.nbytes() if self._sorter is not None else 0
+        owner = 20 * self.n_chunks * G ** 3 if self.rigid is not None else 0  # grid_r, grid_rm, grid_rv
+        return per_particle * P + 16 * self.n_chunks * G ** 3 + owner + backup + sort
 
     # ------------------------------------------------------------------ helpers
     def wave_speeds(self) -> np.ndarray:
-        """[K] P-wave speeds sqrt((lam + 2 mu) / rho) in m/s."""
-        return np.array([m.wave_speed for m in self.materials])
+        """[K] the wave speed of each material that limits the time step, m/s: the P-wave speed
+        sqrt((lam + 2 mu) / rho) of a deformable instance, 0 for a rigid or fixed one (no
+        elastic waves; its particles' speeds still count through v_max)."""
+        return np.array([m.cfl_speed for m in self.materials])
 
 
 def _as_array(a, dtype, shape: tuple, name: str) -> np.ndarray:

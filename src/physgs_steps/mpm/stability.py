@@ -98,8 +98,8 @@ def explain(f: Failure, materials: list[Material], stepper: TimeStepper, plan: S
 def over_cfl_instances(materials: list[Material], plan: StepPlan, dx: float, cfl: float) -> list[int]:
     """Indices of the instances whose own CFL number dt c_k / dx exceeded ``cfl`` in ``plan``,
     stiffest first (at least the stiffest one)."""
-    order = sorted(range(len(materials)), key=lambda i: -materials[i].wave_speed)
-    over = [i for i in order if plan.dt * materials[i].wave_speed / dx > cfl * (1 + 1e-9)]
+    order = sorted(range(len(materials)), key=lambda i: -materials[i].cfl_speed)
+    over = [i for i in order if plan.dt * materials[i].cfl_speed / dx > cfl * (1 + 1e-9)]
     return over or order[:1]
 
 
@@ -110,14 +110,14 @@ def failure_info(f: Failure, materials: list[Material], plan: StepPlan, dx: floa
         "instance": materials[f.instance].name,
         "instances": [materials[i].name for i in (f.instances or [f.instance])],
         "over_cfl": bool(plan.over_cfl), "dt": plan.dt, "cfl": plan.cfl,
-        "cfl_per_instance": {m.name: plan.dt * m.wave_speed / dx for m in materials},
+        "cfl_per_instance": {m.name: plan.dt * m.cfl_speed / dx for m in materials},
         "over_cfl_instances": [materials[i].name for i in over_cfl_instances(materials, plan, dx, cfl)]
         if plan.over_cfl else [],
     }
 
 
 def _advice(f: Failure, materials: list[Material], stepper: TimeStepper, plan: StepPlan, dx: float, n_grid: int) -> str:
-    stiff = max(range(len(materials)), key=lambda i: materials[i].wave_speed)
+    stiff = max(range(len(materials)), key=lambda i: materials[i].cfl_speed)
     ms = materials[stiff]
     m = materials[f.instance]
     if plan.over_cfl:
@@ -164,14 +164,14 @@ def _advice(f: Failure, materials: list[Material], stepper: TimeStepper, plan: S
 
 def cfl_note(materials: list[Material], stepper: TimeStepper, dx: float) -> str | None:
     """A warning when the stiffest material needs more substeps than the cap, else None."""
-    stiff = max(materials, key=lambda m: m.wave_speed)
-    need = stepper.substeps_needed(dx, stiff.wave_speed)
+    stiff = max(materials, key=lambda m: m.cfl_speed)
+    need = stepper.substeps_needed(dx, stiff.cfl_speed)
     if stepper.mode == "adaptive" and need > stepper.max_substeps:
         return (f"'{stiff.name}' (E = {stiff.E:.3g} Pa, wave speed {stiff.wave_speed:.3g} m/s) needs {need} substeps "
                 f"per frame for CFL {stepper.cfl:g} at grid spacing dx = {dx:.3g} m; sim.max_substeps = "
                 f"{stepper.max_substeps} caps it, so the run steps at CFL {stepper.cfl * need / stepper.max_substeps:.2f}")
     if stepper.mode == "fixed":
-        cfl = stepper.frame_dt / stepper.fixed_substeps * stiff.wave_speed / dx
+        cfl = stepper.frame_dt / stepper.fixed_substeps * stiff.cfl_speed / dx
         if cfl > stepper.cfl:
             return (f"fixed substep_dt gives CFL {cfl:.2f} for '{stiff.name}' (wave speed {stiff.wave_speed:.3g} m/s), "
                     f"above sim.cfl = {stepper.cfl:g}")

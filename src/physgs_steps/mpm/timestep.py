@@ -3,8 +3,9 @@
 Adaptive (docs/CONTRACTS.md): ``dt = cfl * dx / max(c_max, v_max)`` limited to
 ``[dt_min, frame_dt]``; ``n = ceil(frame_dt / dt)`` capped at ``max_substeps``; then
 ``dt = frame_dt / n`` so that frames fall on ``k / fps`` exactly.  ``c_max`` is the largest
-P-wave speed ``sqrt((lam + 2 mu) / rho)`` of the scene's materials, ``v_max`` the largest
-particle speed at the start of the frame.  Fixed: ``n = ceil(frame_dt / substep_dt)``,
+P-wave speed ``sqrt((lam + 2 mu) / rho)`` of the scene's deformable materials (a rigid
+instance carries no elastic waves: ``Material.cfl_speed`` is 0; ``MPMSolver.wave_speeds``),
+``v_max`` the largest particle speed at the start of the frame, rigid bodies included.  Fixed: ``n = ceil(frame_dt / substep_dt)``,
 ``dt = frame_dt / n``.
 """
 from __future__ import annotations

@@ -56,6 +56,7 @@ _ANSWER_HINTS = {
     "yield_stress": "<Pa, or null unless plasticity is von_mises>",
     "friction_angle": "<degrees, or null unless plasticity is mohr_coulomb or drucker_prager>",
     "cohesion": "<number, or null unless plasticity is mohr_coulomb or drucker_prager>",
+    "rigid": "<true if the object is visually rigid and should move as one rigid body, else false>",
 }
 
 
@@ -106,6 +107,10 @@ def user_text(q: Question, kb: dict) -> str:
         *[f"- {k}: {v}" for k, v in MODEL_HELP["elasticity"].items()],
         "Allowed plasticity models:",
         *[f"- {k}: {v}" for k, v in MODEL_HELP["plasticity"].items()],
+        "",
+        "rigid: true for an object that does not visibly deform (stone, wood, metal, ceramic, glass, hard "
+        "plastic): it is simulated as one rigid body that still collides with and pushes the soft objects; "
+        "false for anything that should bend, squash, wobble, tear or flow.",
     ]
     if q.pins:
         lines += ["", "Fixed by the user (do not answer these): " +

@@ -25,7 +25,8 @@ from ..errors import ConfigError, InputError
 from ..runtime import read_json_input, write_json
 from . import prior as prior_mod
 from .prompt import BackendError, Question, ask
-from .validate import asked_keys, check_pins, check_velocity, finalize_answer, is_fully_pinned, merge_pins
+from .validate import (asked_keys, check_collider, check_pins, check_velocity, finalize_answer, is_fully_pinned,
+                       merge_pins)
 
 BACKENDS = ("prior", "qwen3vl", "openai")
 
@@ -140,9 +141,11 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
         else:
             values, prov = _ask_backend(backend, lab, entry, p, prompt, base, matches[lab], kb, mcfg, views_src, log)
         records.append(_record(lab, entry, ci, values, velocities.get(ci, [0.0, 0.0, 0.0]), prov))
-        log.info("instance %d (%s): %s [%s], E=%.3g Pa, nu=%.3g, density=%.4g kg/m^3, %s/%s  (%d/%d)",
-                 lab, records[-1]["name"], values["material"], prov["source"], values["E"], values["nu"],
-                 values["density"], values["elasticity"], values["plasticity"], lab + 1, k)
+        r = records[-1]
+        log.info("instance %d (%s): %s [%s], E=%.3g Pa, nu=%.3g, density=%.4g kg/m^3, %s/%s, %s  (%d/%d)",
+                 lab, r["name"], values["material"], prov["source"], values["E"], values["nu"],
+                 values["density"], values["elasticity"], values["plasticity"],
+                 "fixed rigid" if r["fixed"] else "rigid" if r["rigid"] else "deformable", lab + 1, k)
 
     doc = _document(records, backend_name, prompt, kb, mcfg.get("kb_path"))
     if backend is not None:
@@ -297,9 +300,14 @@ def _label_config_index(clusters: dict, n_entries: int, path: str = "clusters.js
 
 
 def _record(label: int, entry: dict, ci: int | None, values: dict, velocity: list[float], prov: dict) -> dict:
+    """One params.json instance entry: the values plus ``rigid`` (a rigid body: the pin, the
+    answer or the material's knowledge-base flag) and ``fixed``/``surface``/``friction`` (a
+    fixed rigid instance is static geometry, a collider with that surface and friction)."""
     rec = {"label": int(label), "name": entry.get("name") or f"instance_{label}", "config_index": ci,
            "velocity": velocity, "provenance": prov}
     rec.update(values)
+    rec.update(check_collider(entry, ci))
+    rec["rigid"] = bool(rec.get("rigid", False)) or rec["fixed"]
     return rec
 
 

@@ -1,7 +1,9 @@
 """Checking material parameters: scene pins (strict) and model answers (clamp or reject).
 
 * Pins come from the user's scene file, so a bad value is a :class:`ConfigError` naming
-  ``scene.instances[i].<key>``; nothing is silently changed.
+  ``scene.instances[i].<key>``; nothing is silently changed.  ``rigid`` (and ``fixed``,
+  which implies it) pins whether the instance is simulated as a rigid body; otherwise the
+  answer's ``rigid`` or the material's knowledge-base flag decides.
 * Answers come from a VLM: an answer that is not a JSON object with the asked keys is an
   :class:`AnswerError` (the backend retries, then falls back to the prior).  Field-level
   problems are repaired and recorded: E <= 0, density <= 0, non-numbers and unknown model
@@ -19,12 +21,13 @@ from .. import materials_kb
 from ..errors import ConfigError
 
 PIN_KEYS = ("material", "elasticity", "plasticity", "E", "nu", "density",
-            "yield_stress", "friction_angle", "cohesion", "fracture_strain", "fracture_softening")
+            "yield_stress", "friction_angle", "cohesion", "fracture_strain", "fracture_softening", "rigid")
 VALUE_KEYS = ("elasticity", "plasticity", "E", "nu", "density")
 PLASTICITY_ANSWER_KEYS = ("yield_stress", "friction_angle", "cohesion")
 # Tearing parameters: a scene may pin them (opt-in tearing); a model is never asked for them.
 PLASTICITY_PIN_KEYS = PLASTICITY_ANSWER_KEYS + ("fracture_strain", "fracture_softening")
 REQUIRED_ANSWER_KEYS = ("material", "elasticity", "plasticity", "E", "nu", "density")
+OPTIONAL_ANSWER_KEYS = ("rigid",)  # asked unless pinned; a missing or unreadable answer keeps the material's flag
 
 DEFAULT_LIMITS = {"E_min": 1.0e3, "E_max": 1.0e9, "nu_max": 0.49, "density_min": 1.0, "density_max": 25000.0,
                   "friction_angle_max": 70.0, "cohesion_max": 0.2}
@@ -74,6 +77,16 @@ def _check_pins(entry: dict, index: int, kb: dict) -> dict:
     ranges = {"E": "> 0 Pa", "density": "> 0 kg/m^3", "nu": "in [0, 0.5)", "yield_stress": "> 0 Pa",
               "friction_angle": "in [0, 90) degrees", "cohesion": ">= 0",
               "fracture_strain": "> 0 (principal Hencky strain)", "fracture_softening": "> 0 (crack opening strain)"}
+    for k in ("rigid", "fixed"):
+        v = entry.get(k)
+        if v is not None and not isinstance(v, bool):
+            raise ConfigError(f"{key}.{k}", f"must be true or false, got {v!r}")
+    if entry.get("fixed") and entry.get("rigid") is False:
+        raise ConfigError(f"{key}.fixed", "a fixed instance is a fixed rigid body: it cannot be pinned rigid: false")
+    if entry.get("rigid") is not None:
+        pins["rigid"] = bool(entry["rigid"])
+    if entry.get("fixed"):
+        pins["rigid"] = True  # fixed implies rigid
     for k, ok in checks.items():
         v = entry.get(k)
         if v is None:
@@ -98,6 +111,22 @@ def check_velocity(entry: dict | None, index: int | None) -> list[float]:
     return [float(x) for x in v]
 
 
+def check_collider(entry: dict | None, index: int | None) -> dict:
+    """The instance's placement flags for params.json: ``fixed`` (bool), ``surface`` and
+    ``friction`` (used when it is fixed: the static collider's surface kind and Coulomb
+    coefficient).  Defaults: not fixed, separate, 0.5."""
+    e = entry or {}
+    key = f"scene.instances[{index}]"
+    surface = e.get("surface") or "separate"
+    if surface not in ("sticky", "slip", "separate"):
+        raise ConfigError(f"{key}.surface", f"must be sticky, slip or separate, got {surface!r}")
+    fr = e.get("friction")
+    fr = 0.5 if fr is None else fr
+    if isinstance(fr, bool) or not isinstance(fr, (int, float)) or not math.isfinite(fr) or fr < 0:
+        raise ConfigError(f"{key}.friction", f"must be a number >= 0, got {fr!r}")
+    return {"fixed": bool(e.get("fixed") or False), "surface": surface, "friction": float(fr)}
+
+
 def is_fully_pinned(pins: dict) -> bool:
     """True when the pins alone determine every parameter (a material preset, or all values).
 
@@ -119,6 +148,7 @@ def asked_keys(pins: dict) -> list[str]:
     """The answer keys a model is asked for: everything not pinned."""
     keys = [k for k in REQUIRED_ANSWER_KEYS if k not in pins]
     keys += [k for k in PLASTICITY_ANSWER_KEYS if k not in pins]
+    keys += [k for k in OPTIONAL_ANSWER_KEYS if k not in pins]
     return keys
 
 
@@ -146,6 +176,15 @@ def parse_answer(text: str, asked: list[str]) -> dict:
         if k in asked and _number(obj.get(k)) is None:
             raise AnswerError(f"'{k}' must be a number, got {obj.get(k)!r}")
     return obj
+
+
+def _boolean(v: Any) -> bool | None:
+    """True/False from a JSON boolean or the strings "true"/"false"/"yes"/"no"; else None."""
+    if isinstance(v, bool):
+        return v
+    if isinstance(v, str) and v.strip().lower() in ("true", "yes", "false", "no"):
+        return v.strip().lower() in ("true", "yes")
+    return None
 
 
 def _first_json_object(text: str) -> dict | None:
@@ -193,6 +232,7 @@ def finalize_answer(answer: dict, base: dict, pins: dict, kb: dict, limits: dict
     lim = dict(DEFAULT_LIMITS, **(limits or {}))
     notes: list[dict] = []
     out = {k: base[k] for k in ("material", "elasticity", "plasticity", "E", "nu", "density")}
+    out["rigid"] = bool(base.get("rigid", False))
     pp = dict(base["plasticity_params"])
 
     mat = answer.get("material")
@@ -205,7 +245,7 @@ def finalize_answer(answer: dict, base: dict, pins: dict, kb: dict, limits: dict
         else:
             if mname != base["material"]:
                 entry = kb[mname]
-                out.update({k: entry[k] for k in ("elasticity", "plasticity", "E", "nu", "density")})
+                out.update({k: entry[k] for k in ("elasticity", "plasticity", "E", "nu", "density", "rigid")})
                 pp = dict(entry["plasticity_params"])
             out["material"] = mname
 
@@ -231,6 +271,13 @@ def finalize_answer(answer: dict, base: dict, pins: dict, kb: dict, limits: dict
                                f"(answers often give handbook values; see materials.yaml header)"))
             out["E"] = to
 
+    if "rigid" not in pins and answer.get("rigid") is not None:
+        r = _boolean(answer["rigid"])
+        if r is None:
+            notes.append(_note("rigid", answer["rigid"], "rejected", out["rigid"],
+                               f"not true or false; the flag of '{out['material']}' is kept"))
+        else:
+            out["rigid"] = r
     _take_plasticity_params(answer, pp, notes, lim)
     out.update({k: pins[k] for k in pins if k in out})
     for k in PLASTICITY_PIN_KEYS:
@@ -313,7 +360,8 @@ def merge_pins(base: dict, pins: dict, kb: dict) -> tuple[dict, list[dict]]:
     if "material" in pins:
         base = materials_kb.material_params(pins["material"], kb)
     out = {k: base[k] for k in ("material", "elasticity", "plasticity", "E", "nu", "density")}
-    out.update({k: pins[k] for k in ("elasticity", "plasticity", "E", "nu", "density") if k in pins})
+    out["rigid"] = bool(base.get("rigid", False))
+    out.update({k: pins[k] for k in ("elasticity", "plasticity", "E", "nu", "density", "rigid") if k in pins})
     pp = dict(base["plasticity_params"])
     pp.update({k: pins[k] for k in PLASTICITY_PIN_KEYS if k in pins})
     out["plasticity_params"] = _complete_plasticity_params(out["plasticity"], pp, out["material"], kb, notes)

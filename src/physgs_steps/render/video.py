@@ -231,3 +231,25 @@ def contact_sheet(images: list[np.ndarray], labels: list[str], columns: int, til
         draw.rectangle([x0, y0, x0 + tw - 1, y0 + th - 1], outline=(128, 128, 128))
         draw.text((x0 + 2, y0 + th + 2), label, fill=(0, 0, 0), font=font)
     return np.asarray(sheet)
+
+
+def final_frames_sheet(videos: list, labels: list[str], out, columns: int = 2, tile_width: int = 320) -> np.ndarray:
+    """A contact sheet of the last frame of each video (e.g. one scene before and after a
+    change, side by side), written to ``out`` (PNG) and returned ([H, W, 3] uint8)::
+
+        python -c "from physgs_steps.render.video import final_frames_sheet as f; f(['a.mp4', 'b.mp4'], ['main', 'branch'], 'sheet.png')"
+    """
+    if len(videos) != len(labels) or not videos:
+        raise RenderError(f"final_frames_sheet: {len(videos)} videos and {len(labels)} labels (one label per video)")
+    frames = []
+    for v in videos:
+        fr = read_video(v)
+        if len(fr) == 0:
+            raise RenderError(f"{v}: no frames")
+        frames.append(fr[-1])
+    sizes = {f.shape for f in frames}
+    if len(sizes) != 1:
+        raise RenderError(f"final_frames_sheet: the videos' frame sizes differ: {sorted(sizes)}")
+    sheet = contact_sheet(frames, list(labels), columns, tile_width)
+    write_png(out, sheet)
+    return sheet

@@ -1,0 +1,245 @@
+"""Sorted particles and run-coarsened P2G (docs/CONTRACTS.md "MPM step", README "Coarsened P2G").
+
+With float atomics (CUDA), P2G costs most of a substep: particles stored sorted by cell make
+consecutive threads add into the same 27 grid nodes, and those atomics serialise.  The
+``coarsened`` P2G mode removes most of them:
+
+* **Runs.**  A thread takes a range of consecutive particles (``run`` of them on CUDA, or,
+  with ``run`` = :data:`CELL`, the slots of one stencil-base cell as the last sort left them;
+  one thread's chunk with private CPU grids).  While consecutive particles share a stencil base
+  node (``floor(x / dx - 0.5)``, the node the 3x3x3 stencil starts at), their mass and
+  momentum contributions are summed in registers (a 27 x 4 accumulator); the thread writes the
+  27 nodes once per run of equal bases, instead of once per particle.  Any particle order gives
+  the same sums up to float reassociation; sorted particles give long runs.
+* **Device counting sort.**  Particles move, so the solver re-sorts them by stencil base every
+  ``resort_every`` substeps, on the device: keys and ranks within each cell (one atomic
+  increment per particle; serial on the CPU, so that the order and thus the results are
+  reproducible there), an exclusive prefix sum over the cells (:func:`exclusive_scan`,
+  blocks of :data:`SCAN_BLOCK` summed serially per thread, recursively), then one scatter of
+  every per-particle array into a second set of arrays, which then swaps with the first.
+
+Everything here runs on every Taichi backend (no CUDA-only shared memory), so the CPU tests
+check the code that runs on the GPU.  ``p2g: atomic`` keeps the one-atomic-per-particle
+transfer (the reference); ``auto`` resolves per arch with :data:`AUTO`.
+"""
+
+import functools
+
+import numpy as np
+import taichi as ti
+
+from ..errors import ConfigError
+
+P2G_MODES = ("auto", "atomic", "coarsened")
+AUTO = {"cpu": "atomic", "cuda": "coarsened"}  # what ``auto`` picks per arch
+RUN_LENGTH = 16  # CUDA: particles per thread in coarsened P2G
+CELL = -1  # run_length value: one thread per stencil-base cell of the last sort (its range of slots)
+RESORT_EVERY = 16  # substeps between device re-sorts in coarsened mode
+SCAN_BLOCK = 128  # entries each thread sums serially in the prefix sum
+
+vec3 = ti.types.vector(3, ti.f32)
+mat3 = ti.types.matrix(3, 3, ti.f32)
+V1 = ti.types.ndarray(dtype=vec3, ndim=1)
+M1 = ti.types.ndarray(dtype=mat3, ndim=1)
+S1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+
+def resolve(mode: str, arch: str) -> str:
+    """``atomic`` or ``coarsened`` for the config value ``mode`` (auto | atomic | coarsened)."""
+    if mode not in P2G_MODES:
+        raise ConfigError("sim.p2g", f"must be one of {', '.join(P2G_MODES)}, got {mode!r}")
+    return AUTO[arch] if mode == "auto" else mode
+
+
+# ---------------------------------------------------------------------------- run accumulator
+@ti.func
+def acc_zero():
+    """The accumulator of one run: [27, 4] (momentum xyz, mass) per stencil node, node n = 9i + 3j + k."""
+    return ti.Matrix.zero(ti.f32, 27, 4)
+
+
+@ti.func
+def acc_add(acc: ti.template(), fx, dx, mv, affine, mass):
+    """Add one particle's APIC contributions (stencil offset ``fx`` [3] in cells from the base
+    node, momentum ``mv``, affine matrix ``affine``, ``mass``) to the run accumulator ``acc``
+    [27, 4] in place (quadratic B-spline weights, as kernels._stencil)."""
+    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+        n = ti.static(9 * i + 3 * j + k)
+        dpos = (ti.Vector([i, j, k], dt=ti.f32) - fx) * dx
+        weight = w[i][0] * w[j][1] * w[k][2]
+        mom = weight * (mv + affine @ dpos)
+        acc[n, 0] += mom[0]
+        acc[n, 1] += mom[1]
+        acc[n, 2] += mom[2]
+        acc[n, 3] += weight * mass
+
+
+def make_flush(private_grid: bool):
+    """ti.func flush(acc, base, c, grid_v, grid_m): add a run's sums to the 27 nodes from
+    ``base`` of grid chunk ``c`` (plain adds into a thread's private grid, else atomics)."""
+
+    @ti.func
+    def flush(acc: ti.template(), base, c, grid_v: ti.template(), grid_m: ti.template()):
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            n = ti.static(9 * i + 3 * j + k)
+            node = base + ti.Vector([i, j, k])
+            mom = ti.Vector([acc[n, 0], acc[n, 1], acc[n, 2]], dt=ti.f32)
+            if ti.static(private_grid):
+                grid_v[c, node[0], node[1], node[2]] = grid_v[c, node[0], node[1], node[2]] + mom
+                grid_m[c, node[0], node[1], node[2]] = grid_m[c, node[0], node[1], node[2]] + acc[n, 3]
+            else:
+                ti.atomic_add(grid_v[0, node[0], node[1], node[2]], mom)
+                ti.atomic_add(grid_m[0, node[0], node[1], node[2]], acc[n, 3])
+
+    return flush
+
+
+@ti.func
+def same_base(a, b):
+    return a[0] == b[0] and a[1] == b[1] and a[2] == b[2]
+
+
+# ---------------------------------------------------------------------------- device sort
+@ti.func
+def base_key(xp, inv_dx, G):
+    """Row-major index of the stencil base node of position ``xp`` (clamped onto the grid)."""
+    base = ti.cast(ti.floor(xp * inv_dx - 0.5), ti.i32)
+    base = ti.min(ti.max(base, 0), G - 3)
+    return (base[0] * G + base[1]) * G + base[2]
+
+
+@functools.lru_cache(maxsize=None)
+def _key_kernel(serial: bool):
+    @ti.kernel
+    def keys(x: V1, key: I1, rank: I1, count: I1, dx: ti.f32, G: ti.i32):
+        """key[p] = stencil base index of particle p; rank[p] = its slot within that cell
+        (count[] must be zero; holds the per-cell counts after)."""
+        inv_dx = 1.0 / dx
+        ti.loop_config(serialize=serial)
+        for p in range(x.shape[0]):
+            k = base_key(x[p], inv_dx, G)
+            key[p] = k
+            rank[p] = ti.atomic_add(count[k], 1)
+
+    return keys
+
+
+@ti.kernel
+def _block_sums(a: I1, n: ti.i32, B: ti.i32, sums: I1):
+    for b in range((n + B - 1) // B):
+        s = 0
+        for i in range(b * B, ti.min((b + 1) * B, n)):
+            s += a[i]
+        sums[b] = s
+
+
+@ti.kernel
+def _block_scan(a: I1, n: ti.i32, B: ti.i32, offs: I1):
+    """In place: a[i] = offs[block of i] + the sum of the entries before i in its block."""
+    for b in range((n + B - 1) // B):
+        s = offs[b]
+        for i in range(b * B, ti.min((b + 1) * B, n)):
+            v = a[i]
+            a[i] = s
+            s += v
+
+
+class Scan:
+    """In-place exclusive prefix sum of an int32 ndarray of length ``n`` (buffers kept)."""
+
+    def __init__(self, n: int, block: int = SCAN_BLOCK):
+        self.n, self.B = int(n), int(block)
+        self.levels = []  # block sums per level
+        m = self.n
+        while m > self.B:
+            m = (m + self.B - 1) // self.B
+            self.levels.append(ti.ndarray(ti.i32, m))
+        self.zero = ti.ndarray(ti.i32, 1)
+        self.zero.fill(0)
+
+    def __call__(self, a) -> None:
+        arrays = [a] + self.levels
+        sizes = [self.n] + [arr.shape[0] for arr in self.levels]
+        for lvl in range(len(self.levels)):
+            _block_sums(arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
+        _block_scan(arrays[-1], sizes[-1], max(self.B, sizes[-1]), self.zero)
+        for lvl in reversed(range(len(self.levels))):
+            _block_scan(arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
+
+
+def exclusive_scan(a) -> None:
+    """In-place exclusive prefix sum of the int32 ndarray ``a`` (one-off; :class:`Scan` keeps buffers)."""
+    Scan(a.shape[0])(a)
+
+
+@ti.kernel
+def _scatter(dest: I1, key: I1, start: I1,
+             x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1, order: I1,
+             x2: V1, v2: V1, C2: M1, F2: M1, tau2: M1, ep2: S1, p_vol2: S1, p_mass2: S1, mat2: I1, act_bits2: I1,
+             order2: I1):
+    """Particle p goes to slot start[key[p]] + dest[p] (dest holds its rank within the cell)."""
+    for p in range(x.shape[0]):
+        q = start[key[p]] + dest[p]
+        x2[q] = x[p]
+        v2[q] = v[p]
+        C2[q] = C[p]
+        F2[q] = F[p]
+        tau2[q] = tau[p]
+        ep2[q] = ep[p]
+        p_vol2[q] = p_vol[p]
+        p_mass2[q] = p_mass[p]
+        mat2[q] = mat[p]
+        act_bits2[q] = act_bits[p]
+        order2[q] = order[p]
+
+
+# the per-particle arrays the sort permutes (MPMSolver attribute names), in _scatter's order
+PERMUTED = ("x", "v", "C", "F", "tau", "ep", "_p_vol", "_p_mass", "_mat", "_act_bits", "_order")
+PERMUTED_TYPES = (vec3, vec3, mat3, mat3, mat3, ti.f32, ti.f32, ti.f32, ti.i32, ti.i32, ti.i32)
+
+
+class DeviceSort:
+    """Counting sort of a solver's particles by stencil base node, on the device.
+
+    ``sort(solver)`` permutes the arrays named in :data:`PERMUTED` (the solver's ``_order``
+    [P] i32 holds each storage slot's row in the caller's order and is permuted with them).
+    Buffers: keys, ranks [P], counts [G^3], and a second set of the permuted arrays.
+    """
+
+    def __init__(self, P: int, G: int, arch: str):
+        self.P, self.G = int(P), int(G)
+        self.key = ti.ndarray(ti.i32, P)
+        self.rank = ti.ndarray(ti.i32, P)
+        self.count = ti.ndarray(ti.i32, G ** 3 + 1)  # counts, then the first slot of each cell (+ P at the end)
+        self.scan = Scan(G ** 3 + 1)
+        self.keys = _key_kernel(arch == "cpu")  # serial on the CPU: a reproducible order
+        self.spare = None
+
+    def _spares(self) -> dict:
+        if self.spare is None:
+            self.spare = {n: ti.ndarray(t, self.P) for n, t in zip(PERMUTED, PERMUTED_TYPES)}
+        return self.spare
+
+    def sort(self, solver) -> None:
+        self.count.fill(0)
+        self.keys(solver.x, self.key, self.rank, self.count, float(solver.dx), self.G)
+        self.scan(self.count)
+        spare = self._spares()
+        cur = [getattr(solver, n) for n in PERMUTED]
+        new = [spare[n] for n in PERMUTED]
+        _scatter(self.rank, self.key, self.count, *cur, *new)
+        for n, a, b in zip(PERMUTED, cur, new):
+            setattr(solver, n, b)
+            spare[n] = a
+
+    def nbytes(self) -> int:
+        return 4 * (2 * self.P + self.G ** 3 + 1) + (4 * 39 * self.P if self.spare is not None else 0)
+
+
+def sorted_by_base(x: np.ndarray, dx: float, G: int) -> bool:
+    """Whether positions ``x`` [P, 3] (metres) are in non-decreasing stencil-base order."""
+    base = np.clip(np.floor(x / dx - 0.5).astype(np.int64), 0, G - 3)
+    key = (base[:, 0] * G + base[:, 1]) * G + base[:, 2]
+    return bool(np.all(np.diff(key) >= 0))

@@ -1,0 +1,202 @@
+"""Rigid instances (issue #15): momentum exchange against the analytic result, angular momentum
+of a spinning free body, fixed bodies, rest on the ground, the time step, static geometry."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from physgs_steps.errors import ConfigError, InputError
+from physgs_steps.mpm import Dynamics, Material, MPMSolver, StaticGeometry
+from physgs_steps.mpm import colliders
+
+STONE = Material("fixed_corotated", "identity", E=2.0e7, nu=0.25, density=2600.0, name="stone", rigid=True)
+JELLY = Material("fixed_corotated", "identity", E=5.0e4, nu=0.3, density=1000.0, name="jelly")
+
+
+def box(lo, hi, s):
+    axes = [np.arange(a + s / 2, b - 1e-9, s) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def momenta(st, mass, sel, c=None):
+    """Linear and angular momentum (about c, default the centre of mass) of rows ``sel``
+    (domain units; APIC's affine part included with dx^2/4)."""
+    m = mass[sel]
+    x, v = st["x"][sel].astype(np.float64), st["v"][sel].astype(np.float64)
+    c = (m[:, None] * x).sum(0) / m.sum() if c is None else c
+    return (m[:, None] * v).sum(0), (m[:, None] * np.cross(x - c, v)).sum(0)
+
+
+def test_head_on_collision_is_perfectly_inelastic():
+    """Two free rigid blocks in zero gravity collide head-on: MPM grid contact is sticky, so
+    they leave together at the common velocity (m1 v1 + m2 v2) / (m1 + m2); momentum is exact."""
+    s = 1 / 64
+    xa = box([0.30, 0.5 - 5 * s, 0.5 - 5 * s], [0.40, 0.5 + 5 * s, 0.5 + 5 * s], s)  # coaxial blocks: head-on
+    xb = box([0.50, 0.5 - 3 * s, 0.5 - 3 * s], [0.56, 0.5 + 3 * s, 0.5 + 3 * s], s)
+    x = np.r_[xa, xb]
+    mat = np.r_[np.zeros(len(xa), int), np.ones(len(xb), int)]
+    heavy = STONE.with_(name="a", density=2000.0)
+    light = STONE.with_(name="b", density=3000.0)
+    sol = MPMSolver([heavy, light], n_grid=32, dynamics=Dynamics.free(gravity=(0, 0, 0)), backend="cpu")
+    vel = np.where(mat[:, None] == 0, [1.2, 0.0, 0.0], [-0.4, 0.0, 0.0])
+    sol.set_particles(x, np.full(len(x), s ** 3), mat, velocity=vel)
+    m1, m2 = sol.rigid.mass
+    v_common = (m1 * 1.2 - m2 * 0.4) / (m1 + m2)
+    P0 = m1 * 1.2 - m2 * 0.4
+    for _ in range(250):  # 0.125 s: they meet after ~0.06 s
+        sol.substep(5e-4)
+    V = sol.rigid.state()["V"]
+    assert np.abs(sol.get_state()["x"][mat == 0, 0].max() - xa[:, 0].max()) > 0.05  # it moved
+    assert V[0, 0] == pytest.approx(v_common, abs=0.02 * 1.2)
+    assert V[1, 0] == pytest.approx(v_common, abs=0.02 * 1.2)
+    assert m1 * V[0, 0] + m2 * V[1, 0] == pytest.approx(P0, rel=1e-4)
+    assert np.abs(V[:, 1:]).max() < 1e-4 and np.abs(sol.rigid.state()["omega"]).max() < 1e-3
+
+
+def test_spinning_free_body_keeps_its_angular_momentum_and_shape():
+    """An asymmetric block spinning about a non-principal axis (zero gravity): it tumbles, its
+    angular momentum (particles, with APIC's affine part) and its shape stay exact."""
+    s = 1 / 64
+    x = box([0.40, 0.44, 0.46], [0.60, 0.56, 0.54], s)  # 0.2 x 0.12 x 0.08
+    sol = MPMSolver([STONE], n_grid=32, dynamics=Dynamics.free(gravity=(0, 0, 0)), backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), np.zeros(len(x), int))
+    w0 = np.array([2.0, 1.0, 4.0])
+    W = np.array([[0, -w0[2], w0[1]], [w0[2], 0, -w0[0]], [-w0[1], w0[0], 0]])
+    c0 = x.mean(0)
+    sol.set_state(x, np.cross(w0, x - c0), np.broadcast_to(W, (len(x), 3, 3)), np.broadcast_to(np.eye(3), (len(x), 3, 3)))
+    body = sol.rigid.state()
+    assert np.allclose(body["omega"][0], w0, rtol=1e-5)
+    c, R = body["c"][0], body["R"][0]
+    I = R @ sol.rigid.I0[0] @ R.T
+    L0 = I @ body["omega"][0]
+    for _ in range(300):  # 0.3 s: about 70 degrees about the body's axes
+        sol.substep(1e-3)
+    body = sol.rigid.state()
+    R = body["R"][0]
+    L1 = (R @ sol.rigid.I0[0] @ R.T) @ body["omega"][0]
+    assert np.linalg.norm(L1 - L0) < 1e-4 * np.linalg.norm(L0)
+    assert np.linalg.norm(body["omega"][0] - w0) > 0.1  # it really tumbles (omega is not conserved)
+    assert np.abs(body["c"][0] - c).max() < 1e-6  # no drift
+    st = sol.get_state()
+    xs = st["x"].astype(np.float64)
+    d0 = np.linalg.norm(x[:50, None] - x[None, -50:], axis=-1)
+    d1 = np.linalg.norm(xs[:50, None] - xs[None, -50:], axis=-1)
+    assert np.abs(d1 - d0).max() < 1e-5
+    assert np.abs(st["F"][0] @ st["F"][0].T - np.eye(3)).max() < 1e-5
+    assert np.abs(sol.get_stress()).max() == 0.0
+    # the particle state carries the body's angular momentum (about the centre, m in kg)
+    mass = np.full(len(x), s ** 3 * STONE.density)
+    _, Lp = momenta(st, mass, slice(None), c=body["c"][0])
+    Lp += mass.sum() * (1 / 32) ** 2 / 4 * np.array([st["C"][0][2, 1] - st["C"][0][1, 2],
+                                                     st["C"][0][0, 2] - st["C"][0][2, 0],
+                                                     st["C"][0][1, 0] - st["C"][0][0, 1]])
+    assert np.linalg.norm(Lp - L1) < 1e-3 * np.linalg.norm(L1)
+
+
+def test_rigid_body_rests_on_the_ground_and_a_fixed_body_holds_a_soft_one():
+    """A free rigid block dropped on the ground comes to rest with its lowest particles on the
+    plane (contact per body: it does not creep into it); a fixed rigid slab (static geometry,
+    not simulated) holds a jelly block dropped on it and never moves."""
+    s = 1 / 64
+    h = 0.125
+    xr = box([0.20, 0.40, h + 0.03], [0.36, 0.56, h + 0.11], s)          # free rigid, dropped 3 cm
+    xf = box([0.50, 0.30, h], [0.80, 0.70, h + 0.06], s)                 # fixed slab on the ground
+    xj = box([0.58, 0.42, h + 0.07], [0.72, 0.58, h + 0.15], s)          # jelly 1 cm above the slab
+    x = np.r_[xr, xf, xj]
+    mat = np.r_[np.zeros(len(xr), int), np.ones(len(xf), int), np.full(len(xj), 2)]
+    slab = STONE.with_(name="slab", fixed=True, friction=0.5)
+    dyn = Dynamics.from_config({"ground": {"height": h, "friction": 0.5, "surface": "separate"}, "damping": 2.0})
+    sol = MPMSolver([STONE, slab, JELLY], n_grid=32, dynamics=dyn, backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), mat)
+    assert sol.n_particles == len(xr) + len(xj) and sol.roles() == ["rigid", "fixed", "deformable"]
+    assert sol.wave_speeds()[0] == 0.0 and sol.wave_speeds()[1] == 0.0
+    dt = 0.4 * (1 / 32) / JELLY.wave_speed
+    for _ in range(int(0.6 / dt)):
+        sol.substep(dt)
+    st = sol.get_state()
+    assert np.array_equal(st["x"][mat == 1], xf.astype(np.float32))  # fixed: exactly where it was
+    zr = st["x"][mat == 0, 2]
+    assert abs(zr.min() - h) < 0.02 * s  # its lowest particles on the plane
+    assert np.abs(sol.rigid.state()["V"]).max() < 0.01
+    top = xf[:, 2].max()
+    zj = st["x"][mat == 2, 2]
+    assert zj.min() > top - 0.3 * s          # the jelly rests on the slab, not in it
+    assert zj.min() < top + 0.5 / 32         # and is held by it (fell the 1 cm gap)
+    assert np.abs(st["v"][mat == 2]).max() < 0.05
+
+
+def test_level_set_of_points_places_the_surface():
+    """The signed distance built from a filled box of points has its zero s/2 beyond the
+    outermost points (the solid's face) to within a fine voxel, on every axis."""
+    s = 1 / 128
+    pts = box([0.3, 0.35, 0.25], [0.6, 0.65, 0.4], s)
+    geom = StaticGeometry(pts, spacing=s)
+    G = 32
+    phi = colliders.level_set(geom, G, 1.0)
+    i = np.arange(G) / G
+    # along z through the middle: the face at z = 0.4 (top) and 0.25 (bottom)
+    col = phi[int(0.45 * G), int(0.5 * G)]
+    inside = (i > 0.25) & (i < 0.4)
+    assert np.all(col[inside] < 0) and np.all(col[(i < 0.24) | (i > 0.41)] > 0)
+    exact = np.maximum(0.25 - i, i - 0.4)
+    near = np.abs(exact) < 3.0 / G
+    assert np.abs(col[near] - exact[near]).max() < 0.25 / G
+    with pytest.raises(InputError, match="shape"):
+        StaticGeometry(np.zeros((0, 3)))
+    with pytest.raises(ConfigError, match="surface"):
+        StaticGeometry(pts, surface="glue")
+
+
+def test_rigid_flags_and_wall_margin_errors():
+    with pytest.raises(ConfigError, match="fixed"):
+        Material("fixed_corotated", "identity", E=1e5, nu=0.3, density=1000.0, fixed=True)
+    with pytest.raises(ConfigError, match="wall_margin"):
+        MPMSolver([JELLY], n_grid=12, backend="cpu")  # 1.5 cells = 0.125 > the default margin 0.1
+    with pytest.raises(InputError, match="every instance is fixed"):
+        sol = MPMSolver([STONE.with_(fixed=True)], n_grid=32, backend="cpu")
+        sol.set_particles(box([0.4, 0.4, 0.4], [0.5, 0.5, 0.5], 1 / 64), np.full(216, 1 / 64 ** 3), np.zeros(216, int))
+
+
+def test_rigid_ball_on_jelly_comes_to_rest_at_the_depth_its_weight_predicts():
+    """The ball_jelly scene at a small scale: a free steel ball (R 6 cm, 7.3 kg) dropped onto a
+    jelly slab (E 5e4 Pa, nu 0.3) on the ground comes to rest sunk in by Hertz' depth for its
+    weight, (9 W^2 / (16 E*^2 R))^(1/3) = 25 mm (0.8 dx here), within 30%, and stays there.
+    Before the grid coupling (rigid.py "Coupling") the jelly under it flowed into the ball's
+    nodes and it kept sinking at about 1 cm/s (depth 1.6x Hertz at 1 s, still growing)."""
+    G, Ls = 16, 0.5
+    s = Ls / G / 2
+    R, ground, plinth = 0.06, 0.06, 0.03
+    lo = np.array([0.12, 0.12, ground + plinth])
+    xj = box(lo, lo + [0.26, 0.26, 0.1], s)
+    xp = box([0.1, 0.1, ground], [0.4, 0.4, ground + plinth], s)  # a fixed stone plinth under the slab
+    c = np.array([0.25, 0.25, lo[2] + 0.1 + R + s / 2])
+    cube = box(c - R, c + R, s)
+    xb = cube[np.linalg.norm(cube - c, axis=1) <= R]
+    x = np.r_[xj, xb, xp] / Ls
+    mat = np.r_[np.zeros(len(xj), int), np.ones(len(xb), int), np.full(len(xp), 2)]
+    ball = STONE.with_(name="ball", density=7850.0)
+    jelly = JELLY.with_(density=1050.0)
+    dyn = Dynamics.from_config({"ground": {"height": ground / Ls, "friction": 0.5, "surface": "separate"},
+                                "damping": 10.0})
+    # (the same kernels as the test above: one compilation for both)
+    sol = MPMSolver([jelly, ball, STONE.with_(name="plinth", fixed=True)], n_grid=G, domain_size=Ls, dynamics=dyn,
+                    backend="cpu")
+    sol.set_particles(x, np.full(len(x), (s / Ls) ** 3), mat)
+    W = sol.rigid.mass[0] * 9.8
+    Es = JELLY.E / (1 - JELLY.nu ** 2)
+    hertz = (9 * W * W / (16 * Es * Es * R)) ** (1 / 3)
+    far = (np.abs(xj[:, :2] - 0.25).max(1) > 0.09) & (xj[:, 2] > xj[:, 2].max() - s / 2)
+
+    def depth():
+        z = sol.get_state()["x"][:, 2].astype(np.float64) * Ls
+        return (z[: len(xj)][far].mean() + s / 2) - (z[mat == 1].min() - s / 2)
+
+    dt = 0.4 * (Ls / G) / JELLY.wave_speed
+    out = []
+    for t_end in (0.7, 1.0):
+        while sol.time < t_end - 1e-9:
+            sol.substep(dt)
+        out.append(depth())
+    print(f"ball on jelly: depth {1e3 * out[0]:.1f} mm at 0.7 s, {1e3 * out[1]:.1f} mm at 1 s, Hertz {1e3 * hertz:.1f} mm")
+    assert out[1] == pytest.approx(hertz, rel=0.3), (out, hertz)
+    assert abs(out[1] - out[0]) < 0.05 * hertz, out  # at rest: under 1.3 mm in 0.3 s
