@@ -1,7 +1,12 @@
-"""Shared test fixtures: paths to the repository and to ../shared data."""
+"""Shared test fixtures: paths to the repository and to ../shared data, and the tiny
+workflow run that tests/test_workflow.py and tests/test_slurm.py both read (made once per
+session: it is the suite's most expensive artifact after the benchmark)."""
 from __future__ import annotations
 
 import os
+import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -9,6 +14,10 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
 SPLATS = SHARED / "data" / "splats"
+# the tiny configuration of the end-to-end runs (2000 gaussians, 16^3 grid, 16 frames, 128x128 video)
+TINY_CONFIG = "tests/slurm/config.yaml"  # relative to a run folder (made by make_run_dir)
+# workflow entries linked into a scratch run folder (results/, .snakemake/ and logs/ are its own)
+WORKFLOW_ENTRIES = ("Snakefile", "workflow", "config", "src", "tests", "profiles")
 
 # keep every cache inside the workspace (Taichi, torch extensions, HF)
 os.environ.setdefault("PHYSGS_CACHE_DIR", str(REPO / ".cache"))
@@ -27,3 +36,39 @@ def splats_dir() -> Path:
     if not SPLATS.exists():
         pytest.skip(f"shared splat data not found at {SPLATS}")
     return SPLATS
+
+
+def make_run_dir(path: Path) -> Path:
+    """A scratch working folder whose workflow files are links to the repository's."""
+    path.mkdir(parents=True, exist_ok=True)
+    for name in WORKFLOW_ENTRIES:
+        (path / name).symlink_to(REPO / name)
+    return path
+
+
+@pytest.fixture(scope="session")
+def tiny_bear_run(tmp_path_factory) -> Path:
+    """``snakemake --cores 2 results/bear/stage_report.tsv --configfile tests/slurm/config.yaml``
+    in a scratch folder, once per session: every stage of the tiny bear, its metrics and stage
+    report. Its stages run in the warm stage worker (worker.py), as on a GPU machine; the
+    worker outlives the run, so the fixture stops it. Its results/ are read, never written, by test_workflow.py (outputs, what a
+    config change re-runs: dry runs) and test_slurm.py (the local run that the SLURM run must
+    match)."""
+    d = make_run_dir(tmp_path_factory.mktemp("tiny_bear"))
+    env = dict(os.environ, PHYSGS_WORKER="1", PHYSGS_WORKER_DIR=str(d / ".worker"))
+    p = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "results/bear/stage_report.tsv",
+                        "--configfile", TINY_CONFIG], cwd=d, capture_output=True, text=True, timeout=600,
+                       stdin=subprocess.DEVNULL, env=env)
+    out = p.stdout + p.stderr
+    assert p.returncode == 0, f"the tiny bear run failed:\n{out[-6000:]}"
+    assert "in the warm worker" in out and "the warm stage worker (pid" in out, out[-3000:]
+    assert re.search(r"\] (prepare|cluster|fill): .* in the warm worker", out), out[-3000:]
+    # the worker outlives the run (worker.idle_seconds): it served every job; stop it here
+    from physgs_steps import worker as W
+
+    socks = list((d / ".worker").glob("*.sock"))
+    assert len(socks) == 1
+    info = W.ping(socks[0])
+    assert info and info["jobs"] >= 8 and info["rss_mb"] > 0, info
+    assert W.shutdown(socks[0]) and not socks[0].exists()
+    return d

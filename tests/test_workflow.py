@@ -46,20 +46,10 @@ def run_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def finished(run_dir):
-    # the stages run in the warm stage worker (worker.py), as on a GPU machine; it outlives the run
-    from physgs_steps import worker as W
-
-    env = dict(os.environ, PHYSGS_WORKER="1", PHYSGS_WORKER_DIR=str(run_dir / ".worker"))
-    out = smk(run_dir, "--cores", "2", "results/bear/stage_report.tsv", "--configfile", str(TINY), env=env)
-    assert "in the warm worker" in out and "the warm stage worker (pid" in out, out[-3000:]
-    assert re.search(r"\] (prepare|cluster|fill): .* in the warm worker", out), out[-3000:]
-    socks = list((run_dir / ".worker").glob("*.sock"))
-    assert len(socks) == 1
-    info = W.ping(socks[0])
-    assert info and info["jobs"] >= 8 and info["rss_mb"] > 0, info
-    assert W.shutdown(socks[0]) and not socks[0].exists()
-    return run_dir
+def finished(tiny_bear_run):
+    # conftest.py: the tiny bear through results/bear/stage_report.tsv, every stage in the
+    # warm stage worker (shared with test_slurm.py, which compares its SLURM run with it)
+    return tiny_bear_run
 
 
 def test_dry_run_lists_every_stage(run_dir):

@@ -115,7 +115,7 @@ def check_scene_file(cfg: dict, path: Path) -> list[Problem]:
 def _source_problems(data: dict) -> list[str]:
     src = data["source"]
     if src.startswith("builtin:"):
-        from .builtin_scenes import BUILTIN_SCENES
+        from .builtin_names import BUILTIN_SCENES  # light: no geometry libraries
 
         if src[len("builtin:"):] not in BUILTIN_SCENES:
             return [f"source: unknown built-in scene '{src}'; valid: "

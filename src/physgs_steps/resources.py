@@ -36,7 +36,7 @@ def scene_gaussians(scene_cfg: dict) -> int | None:
     """The gaussian count of a scene (its validated scene dict), or None when unknown."""
     src = scene_cfg.get("source") or ""
     if src.startswith("builtin:"):
-        from .builtin_scenes import DEFAULT_N_GAUSSIANS
+        from .builtin_names import DEFAULT_N_GAUSSIANS  # light: no geometry libraries
 
         n = (scene_cfg.get("builtin") or {}).get("n_gaussians")
         return int(n) if n is not None else DEFAULT_N_GAUSSIANS.get(src[len("builtin:"):])

@@ -24,10 +24,8 @@ from .catalog import build
 from .ground_truth import GroundTruth, Instance, Part
 from .sampling import gaussians_from_surface
 
-BUILTIN_SCENES: tuple[str, ...] = ("bear", "bear_can", "duck_stone", "ficus", "basket_mat", "bread", "ball_jelly")
-TWO_INSTANCE_SCENES = ("bear_can", "duck_stone", "basket_mat", "ball_jelly")
-DEFAULT_N_GAUSSIANS: dict[str, int] = {s: 24000 if s in TWO_INSTANCE_SCENES else 20000 for s in BUILTIN_SCENES}
-MIN_GAUSSIANS, MAX_GAUSSIANS = 100, 2_000_000
+from ..builtin_names import (BUILTIN_SCENES, DEFAULT_N_GAUSSIANS, MAX_GAUSSIANS, MIN_GAUSSIANS,  # noqa: F401
+                             TWO_INSTANCE_SCENES)
 
 __all__ = ["BUILTIN_SCENES", "DEFAULT_N_GAUSSIANS", "GroundTruth", "Instance", "Part", "ground_truth", "make_scene"]
 

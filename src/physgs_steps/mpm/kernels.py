@@ -745,8 +745,13 @@ def build_constitutive(combos: tuple) -> SimpleNamespace:
     ep, tau)`` and ``update(F_trial, mat, mparams, mcombo, ep, F_out, tau_out)`` (return map,
     then the stress of the returned F, exactly as in G2P; ``ep`` is updated in place)."""
     updates = [_make_update(M.ELASTICITY[e], M.PLASTICITY[p], f) for e, p, f in combos]
-    stresses = [_make_stress(M.ELASTICITY[e], f) for e, _, f in combos]
     n_combo = len(updates)
+    # the stress depends on the elasticity (and tearing) alone: pairs that share it share one
+    # copy of its code (an SVD each), so the kernel compiles once per elasticity, not per pair
+    kinds = list(dict.fromkeys((e, f) for e, _, f in combos))
+    stresses = [_make_stress(M.ELASTICITY[e], f) for e, f in kinds]
+    kind_of = tuple(kinds.index((e, f)) for e, _, f in combos)  # combo index -> stress kind
+    n_kind = len(kinds)
 
     @ti.kernel
     def stress(F: M1, mat: I1, mparams: S2, mcombo: I1, ep: S1, tau: M1):
@@ -756,10 +761,15 @@ def build_constitutive(combos: tuple) -> SimpleNamespace:
             cid = 0
             if ti.static(n_combo > 1):
                 cid = mcombo[m]
+            kid = 0
+            if ti.static(n_kind > 1):
+                for ci in ti.static(range(n_combo)):
+                    if cid == ci:
+                        kid = kind_of[ci]  # a constant (ti.static here would bind a name, not store)
             tau_new = ti.Matrix.zero(ti.f32, 3, 3)
-            for ci in ti.static(range(n_combo)):
-                if cid == ci:
-                    tau_new = stresses[ci](F[p], q, ep[p])
+            for ki in ti.static(range(n_kind)):
+                if kid == ki:
+                    tau_new = stresses[ki](F[p], q, ep[p])
             tau[p] = tau_new
 
     @ti.kernel
