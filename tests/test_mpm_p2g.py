@@ -124,6 +124,10 @@ def test_exclusive_scan_and_mode_errors():
         Scan(n)(arr)
         assert np.array_equal(arr.to_numpy(), np.r_[0, np.cumsum(a)[:-1]].astype(np.int32)), n
     assert resolve("auto", "cuda") in ("atomic", "coarsened")
+    assert resolve("auto", "cuda", 27_000) == "atomic"  # too few runs to fill a GPU
+    assert resolve("auto", "cuda", 1_000_000) == "coarsened"
+    assert resolve("auto", "cpu", 1_000_000) == "atomic"
+    assert resolve("coarsened", "cuda", 10) == "coarsened"  # asked for: kept
     with pytest.raises(ConfigError, match="sim.p2g"):
         resolve("shared", "cpu")
     with pytest.raises(ConfigError, match="run_length"):

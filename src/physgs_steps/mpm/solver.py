@@ -105,7 +105,8 @@ class MPMSolver:
             raise ConfigError("grid_mode", f"must be auto, private or atomic, got {grid_mode!r}")
         self.private_grid = grid_mode == "private" or (grid_mode == "auto" and self.arch == "cpu")
         self.n_chunks = max(1, min(os.cpu_count() or 1, MAX_CHUNKS)) if self.private_grid else 1
-        self.p2g = P2G.resolve(p2g, self.arch)
+        self._p2g_asked = p2g
+        self.p2g = P2G.resolve(p2g, self.arch)  # again in load_particles, with the particle count
         run_length = P2G.CELL if run_length == "cell" else run_length
         if not isinstance(run_length, int) or (run_length < 1 and run_length != P2G.CELL) or int(resort_every) < 0:
             raise ConfigError("p2g", f"run_length must be >= 1 or 'cell' and resort_every >= 0, got {run_length!r}, "
@@ -188,6 +189,7 @@ class MPMSolver:
         self._p_mass.from_numpy(p_mass)
         self._dyn = _ndarray_from(self.bound.table, ti.f32)
         self._setup_static()
+        self.p2g = P2G.resolve(self._p2g_asked, self.arch, self.n_particles)
         if self.p2g == "coarsened" and any(m.rigid and not m.fixed for m in self.materials):
             # the coarsened transfer does not deposit the rigid bodies' own grids (grid_r, grid_rm,
             # grid_rv: the moving-collider coupling); with a free rigid body the atomic one runs
