@@ -149,17 +149,25 @@ def _advice(f: Failure, materials: list[Material], stepper: TimeStepper, plan: S
         msg = ("Check the scene's dynamics (initial velocities, impulses, enforced motions) and the domain walls; "
                f"a very soft or light material (E = {m.E:.3g} Pa, density {m.density:g} kg/m^3) can also splash "
                "out. Lower the velocities, raise E, or lower sim.cfl.")
-        if stepper.mode == "adaptive":
-            # the substep cap also bounds the speed a particle may have: sim.cfl cells per substep
-            v_ok = stepper.cfl * dx * stepper.max_substeps / stepper.frame_dt
-            if v_ok < 1.0:
-                msg += (f" At this resolution sim.max_substeps = {stepper.max_substeps} lets a particle move at most "
-                        f"{v_ok:.3g} m/s (sim.cfl = {stepper.cfl:g} cells of dx = {dx:.3g} m per substep; one frame of "
-                        f"free fall alone reaches {9.8 * stepper.frame_dt:.3g} m/s): raise sim.max_substeps or lower "
-                        "sim.n_grid.")
-        return msg
+        return msg + _speed_cap_note(stepper, dx, 1.0)
+    # NaN/Inf: besides stiffness, a particle crossing many cells per substep blows the transfer up
     return (f"Lower sim.cfl (now {stepper.cfl:g}) or the stiffness of '{ms.name}' (E = {ms.E:.3g} Pa), or check "
-            f"its Poisson ratio (nu = {ms.nu:g}; values near 0.5 make it nearly incompressible and hard to step).")
+            f"its Poisson ratio (nu = {ms.nu:g}; values near 0.5 make it nearly incompressible and hard to step)."
+            + _speed_cap_note(stepper, dx, 9.8 * stepper.frame_dt))
+
+
+def _speed_cap_note(stepper: TimeStepper, dx: float, v_expected: float) -> str:
+    """The speed the substep cap allows (sim.cfl cells per substep), when it is below
+    ``v_expected`` m/s (adaptive stepping only), else ''."""
+    if stepper.mode != "adaptive":
+        return ""
+    v_ok = stepper.cfl * dx * stepper.max_substeps / stepper.frame_dt
+    if v_ok >= v_expected:
+        return ""
+    return (f" At this resolution sim.max_substeps = {stepper.max_substeps} lets a particle move at most "
+            f"{v_ok:.3g} m/s (sim.cfl = {stepper.cfl:g} cells of dx = {dx:.3g} m per substep; one frame of "
+            f"free fall alone reaches {9.8 * stepper.frame_dt:.3g} m/s): raise sim.max_substeps or lower "
+            "sim.n_grid.")
 
 
 def cfl_note(materials: list[Material], stepper: TimeStepper, dx: float) -> str | None:
