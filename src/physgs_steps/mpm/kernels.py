@@ -52,12 +52,8 @@ from . import p2g_sorted as P2G
 
 from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
 
-vec3 = ti.types.vector(3, ti.f32)
-mat3 = ti.types.matrix(3, 3, ti.f32)
-V1 = ti.types.ndarray(dtype=vec3, ndim=1)
-M1 = ti.types.ndarray(dtype=mat3, ndim=1)
-S1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
-I1 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+from .p2g_sorted import I1, M1, S1, V1, mat3, vec3  # noqa: E402,F401  (per-particle types, defined once there; K.mat3 is used by solver and rigid)
+
 S2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
 V3 = ti.types.ndarray(dtype=vec3, ndim=3)
 V4 = ti.types.ndarray(dtype=vec3, ndim=4)
