@@ -147,7 +147,7 @@ def test_static_table_instance_is_a_collider_the_dropped_jelly_rests_on(caplog):
         return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
 
     s, h, top = 1 / 64, 0.125, 0.36
-    table = box([0.30, 0.30, top - 0.04], [0.70, 0.70, top], s)             # static instance 0
+    table = box([0.30, 0.30, top - 3 * s], [0.70, 0.70, top], s)            # static instance 0, top face at `top`
     xj = box([0.43, 0.43, top + 0.01], [0.57, 0.57, top + 0.09], s)          # jelly 1 cm above it
     other = box([0.30, 0.30, 0.80], [0.40, 0.40, 0.82], s)                   # surroundings (label -1)
     parts = {"x": xj, "vol": np.full(len(xj), s ** 3), "label": np.ones(len(xj), np.int32),
@@ -163,14 +163,18 @@ def test_static_table_instance_is_a_collider_the_dropped_jelly_rests_on(caplog):
     assert "static instance table (label 0): STATIC COLLIDER" in caplog.text
     assert "static surroundings (label -1): STATIC COLLIDER" in caplog.text
     dt = 0.4 * (1 / 32) / jelly.wave_speed
-    for _ in range(int(0.6 / dt)):
+    for _ in range(int(0.75 / dt)):
         sol.substep(dt)
     st = sol.get_state()
     zj = st["x"][:, 2]
-    assert zj.min() > top - 0.3 * s and zj.min() < top + 0.5 / 32              # on the table top, not in it
+    # on the table top (within a quarter cell: the level set is sampled at the grid nodes), not in it
+    assert zj.min() > top - 0.25 / 32 and zj.min() < top + 0.5 / 32
     assert np.abs(st["v"]).max() < 0.05
-    # a static point inside the material at the start is left out (it would push the material)
+    # a static point inside the material at the start is left out (it would push the material),
+    # with the table's points within a cell of the material touching it; the rest of the table stays
     touching = {**parts, "static_x": np.r_[table, xj[:1]], "static_label": np.zeros(len(table) + 1, np.int32)}
     from physgs_steps.simulate import static_colliders
     geoms = static_colliders(touching, params, cfg, LOG)
-    assert len(geoms) == 1 and len(geoms[0].points) == len(table)
+    left = geoms[0].points
+    assert len(geoms) == 1 and np.linalg.norm(left - xj[0], axis=1).min() > 1 / 32
+    assert 0.95 * len(table) < len(left) < len(table)
