@@ -50,7 +50,7 @@ import taichi as ti
 from . import materials as M
 from . import p2g_sorted as P2G
 
-from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
+from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, MIRROR_MASS, TOUCH
 
 from .p2g_sorted import I1, M1, S1, V1, mat3, vec3  # noqa: E402,F401  (per-particle types, defined once there; K.mat3 is used by solver and rigid)
 
@@ -222,12 +222,13 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
         return out
 
     @ti.func
-    def ghost(xn, gv, phi, n, vc, kind, fric, dx, band, grid_v: ti.template(), grid_m: ti.template()):
+    def ghost(xn, gv, phi, n, vc, kind, fric, dx, band, m_min, grid_v: ti.template(), grid_m: ti.template()):
         """The node velocity near a boundary (colliders.py, "Boundary placement"): behind it
         (phi < 0) the linear extrapolation across the surface of the velocity at the mirror
         point ``d = (band + |n|_1) dx`` in front of the surface; in front of it (0 <= phi <
         band dx: nodes whose kernel support holds the surface) the normal velocity on the same
-        line, which gives these nodes the surface's reaction; else the plain node rule."""
+        line, which gives these nodes the surface's reaction; else (or where the mirror's mean
+        node mass is below ``m_min``) the plain node rule."""
         G = grid_m.shape[1]
         out = gv
         done = 0
@@ -239,6 +240,7 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
             fr = g - ti.cast(base, ti.f32)
             acc = ti.Vector.zero(ti.f32, 3)
             wsum = 0.0
+            msum = 0.0
             for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
                 node = base + ti.Vector([i, j, k])
                 if node.min() >= 0 and node.max() < G:
@@ -246,7 +248,8 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
                         w = (fr[0] if i else 1.0 - fr[0]) * (fr[1] if j else 1.0 - fr[1]) * (fr[2] if k else 1.0 - fr[2])
                         acc += w * grid_v[0, node[0], node[1], node[2]]
                         wsum += w
-            if wsum > 1e-6:
+                        msum += w * grid_m[0, node[0], node[1], node[2]]
+            if wsum > 1e-6 and msum >= m_min * wsum:
                 vm = acc / wsum
                 u = vm - vc
                 q = phi / dm
@@ -412,7 +415,7 @@ def build(spec: Spec) -> SimpleNamespace:
         vp = v[p]
         if ti.static(has_actions):
             b = act_bits[p]
-            if b != 0:
+            if b != 0 and held == 0:  # a holding region absorbs the forces on what it holds
                 vp = _particle_actions(b, xp, vp, t, dt, dyn)
         mass = p_mass[p]
         affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
@@ -662,9 +665,10 @@ def build(spec: Spec) -> SimpleNamespace:
                     if active == 1:
                         if s < n_obst:
                             if engaged and phi < FRONT_BAND * dx:
-                                gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, FRONT_BAND, grid_v, grid_m)
+                                gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, FRONT_BAND, 0.0, grid_v, grid_m)
                         elif phi < 0.0:
-                            gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, 0.0, grid_v, grid_m)
+                            gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, 0.0,
+                                           MIRROR_MASS * grid_m[0, i, j, k], grid_v, grid_m)
             grid_b[i, j, k] = gv
         # G2P, F update, return map, stress of the new F; boundaries on deformable particles
         for p in x:
@@ -711,10 +715,16 @@ def build(spec: Spec) -> SimpleNamespace:
                             un = (new_v - vc).dot(n)
                             if un < 0.0:
                                 new_v -= un * n
+            F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
+            if held == 1:
+                # a held particle strains with the field the ghost nodes extend into the box (its
+                # stress keeps the stress continuous across the face) but transfers the holder's
+                # motion, so its momentum does not feed back into the ghost nodes' mirror samples
+                new_v = hv
+                new_C = ti.Matrix.zero(ti.f32, 3, 3)
             v[p] = new_v
             C[p] = new_C
             x[p] = x_new
-            F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
             q = _qrow(mparams, m)
             cid = 0
             if ti.static(n_combo > 1):
