@@ -15,7 +15,10 @@ jobs: prepare, cluster, fill and the parameter stages too, whose own work is a f
 second to a few seconds, less than a process start) when ``worker.enabled`` is true, or
 ``auto`` and this machine has an
 NVIDIA GPU (``/proc/driver/nvidia/gpus`` lists one and CUDA_VISIBLE_DEVICES does not hide
-it).  The environment variable ``PHYSGS_WORKER`` (``0``/``1``) overrides the config.  Every
+it) or the local Snakemake run has one core (``--cores 1``: its jobs run one after the other
+anyway, so serving them in one process queues nothing; on the 2-core CPU machine it saves
+the 2-7 s start of every job and the kernel loading of the second and third simulation;
+common.smk sets ``PHYSGS_RUN_CORES``).  The environment variable ``PHYSGS_WORKER`` (``0``/``1``) overrides the config.  Every
 other case runs the stage in the job's own process, as without a worker.
 
 Lifetime and safety:
@@ -101,6 +104,9 @@ def has_nvidia_gpu() -> bool:
         return False
 
 
+RUN_CORES_ENV = "PHYSGS_RUN_CORES"  # the local Snakemake run's --cores (set by common.smk)
+
+
 def wants_worker(stage: str, wcfg: dict | None) -> bool:
     """Whether ``stage`` runs in the warm worker under the ``worker`` config section."""
     wcfg = wcfg or {}
@@ -110,7 +116,7 @@ def wants_worker(stage: str, wcfg: dict | None) -> bool:
     else:
         enabled = wcfg.get("enabled", "auto")
         if enabled == "auto":
-            enabled = has_nvidia_gpu()
+            enabled = has_nvidia_gpu() or os.environ.get(RUN_CORES_ENV, "").strip() == "1"
     return bool(enabled) and stage in tuple(wcfg.get("stages", DEFAULT_STAGES))
 
 
