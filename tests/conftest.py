@@ -26,6 +26,29 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
 
+# Parallel runs (the README's command runs the suite in 2 pytest-xdist workers, --dist loadgroup):
+# each test file is one group, so a file's module fixtures and compiled Taichi kernels serve
+# all its tests in one worker; the files reading the tiny bear run share one group (the run is
+# made once). Groups start heaviest first (most of their time is compiling Taichi kernels), so
+# the two workers finish together instead of one waiting on a slow file collected last.
+SHARED_GROUPS = {"test_slurm.py": "tiny_bear", "test_workflow.py": "tiny_bear"}
+HEAVY_FIRST = ("tiny_bear", "test_bgdo.py", "test_validation.py", "test_benchmark.py", "test_mpm_p2g.py",
+               "test_mpm_rigid.py", "test_mpm_materials.py", "test_mpm_dynamics.py", "test_mpm_solver.py",
+               "test_mpm_rest.py", "test_robustness.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    def group(item) -> str:
+        name = item.path.name
+        return SHARED_GROUPS.get(name, name)
+
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(group(item)))
+    rank = {g: i for i, g in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda it: rank.get(group(it), len(rank)))  # stable: file order kept within a rank
+
+
 @pytest.fixture(scope="session")
 def repo() -> Path:
     return REPO

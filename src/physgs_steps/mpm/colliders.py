@@ -52,7 +52,10 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
   linearly through it.  In front of it (``0 <= phi < FRONT_BAND dx``): sticky
   ``v = v_c + q u``; slip: the node's normal part set to ``q u_n``; separate: raised to
   ``q min(u_n, 0)`` where it is below (the surface only pushes), with Coulomb friction, ``mu``
-  times that push, on the node's own tangential part.  These front nodes carry the surface's
+  times that push, on the node's own tangential part.  Where the bands of several obstacles
+  overlap, each one's push is measured on the node's velocity before any boundary (a
+  frictionless domain wall acting first must not take a rough floor's friction away), and a
+  push along a normal that an earlier frictional obstacle already charged is not charged twice.  These front nodes carry the surface's
   reaction: the quadratic B-spline weighs nodes up to 1.5 cells in front of a point on the
   surface, and with a condition only behind the surface a resting body's weight has nothing
   to hold it there (its lowest layers pile up on the plane, held only by the particle
