@@ -107,6 +107,23 @@ def has_nvidia_gpu() -> bool:
 RUN_CORES_ENV = "PHYSGS_RUN_CORES"  # the local Snakemake run's --cores (set by common.smk)
 
 
+def note_run_cores(cores) -> None:
+    """Record a local Snakemake run's ``--cores`` for the jobs' ``worker.enabled: auto`` policy
+    (called by common.smk in the main process; ``cores()`` raises where none were given, e.g.
+    a dry run, and inside a SLURM job the run is not local: both leave the policy to the GPU
+    probe)."""
+    n = None
+    if not os.environ.get("SLURM_JOB_ID"):
+        try:
+            n = str(cores())
+        except Exception:
+            n = None
+    if n is None:
+        os.environ.pop(RUN_CORES_ENV, None)
+    else:
+        os.environ[RUN_CORES_ENV] = n
+
+
 def wants_worker(stage: str, wcfg: dict | None) -> bool:
     """Whether ``stage`` runs in the warm worker under the ``worker`` config section."""
     wcfg = wcfg or {}

@@ -15,11 +15,10 @@ from physgs_steps import plan as P
 from physgs_steps.errors import ConfigError, PhysGSError
 
 # worker.enabled auto serves a local one-core run's jobs in the warm worker (worker.py)
-if workflow.is_main_process and workflow.local_exec and not os.environ.get("SLURM_JOB_ID"):
-    try:
-        os.environ["PHYSGS_RUN_CORES"] = str(workflow.cores)
-    except Exception:  # no --cores given (e.g. a dry run): leave the policy to the GPU probe
-        os.environ.pop("PHYSGS_RUN_CORES", None)
+if workflow.is_main_process and workflow.local_exec:
+    from physgs_steps.worker import note_run_cores
+
+    note_run_cores(lambda: workflow.cores)
 
 
 def fail(err):
