@@ -166,3 +166,61 @@ def test_column_resting_on_the_ground_shortens_by_its_weight(ground):
     exact = rho * 9.8 * ((h - s / 2) ** 2 - (s / 2) ** 2) / (2 * E)
     assert abs(np.mean(short) / exact - 1.0) < 0.15, (np.mean(short), exact)
     assert np.ptp(short) < 0.05 * exact  # at rest, no creep
+
+
+def test_held_block_under_a_sparse_free_fringe_stays_finite():
+    """A fixed cuboid holding a block under a one-particle-per-cell fringe of free material
+    that the wind pushes (the ficus stem at the pot's rim): the ghost nodes' mirror samples
+    are light there, and before the mirror-mass rule (colliders.MIRROR_MASS) the held
+    particles' strain fed back through them until the state was NaN."""
+    G = 32
+    dx = 1.0 / G
+    s = dx / 2  # held block: 8 particles per cell; fringe: one layer, 1 per cell, 0.3 dx above the face
+
+    def lattice(*axes):  # [N, 3]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+    held = lattice(*[np.arange(0.4 + s / 2, 0.6, s)] * 2, np.arange(0.3 + s / 2, 0.4, s))
+    fringe = lattice(*[np.arange(0.4 + dx / 2, 0.6, dx)] * 2, [0.4 + 0.3 * dx])
+    x = np.concatenate([held, fringe])
+    dyn = Dynamics.from_config({"gravity": [0, 0, 0], "ground": None, "boundary_conditions": [
+        {"type": "cuboid", "point": [0.5, 0.5, 0.35], "size": [0.1, 0.1, 0.05], "velocity": [0, 0, 0]},
+        {"type": "wind", "point": [0.5, 0.5, 0.4], "size": [0.2, 0.2, 0.2], "mean": [3.0, 0.0, 0.0],
+         "amplitude": [2.0, 0.0, 0.0], "frequency": 2.0}]}, "test")
+    m = Material("fixed_corotated", "identity", E=3e5, nu=0.3, density=700.0, name="plant")
+    sol = MPMSolver([m], n_grid=G, dynamics=dyn, backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), np.zeros(len(x), int))
+    dt = 0.4 * dx / np.sqrt(3e5 / 700)
+    for _ in range(600):
+        sol.substep(dt)
+    st = sol.get_state()
+    dev = np.abs(st["F"][: len(held)] - np.eye(3)).max()  # the held block barely strains
+    assert np.isfinite(st["x"]).all() and dev < 0.05, dev
+
+
+def test_frictionless_wall_in_the_floor_band_keeps_the_floor_friction():
+    """Overlapping front bands: a frictionless domain wall 0.2 cells behind a rough ground acts
+    on the same nodes first; the ground's Coulomb friction must still be mu times its own push
+    (before the fix it braked only with what the wall had left: the block slid 30% farther)."""
+    G, mu = 32, 0.3
+    dx = 1.0 / G
+    th = np.radians(30.0)
+    m = Material("fixed_corotated", "identity", E=1e6, nu=0.3, density=1000.0, name="block")
+
+    def slide(ground_cells):
+        zf = ground_cells * dx
+        axes = [np.arange(0.2 + dx / 4, 0.45, dx / 2), np.arange(0.375 + dx / 4, 0.625, dx / 2),
+                np.arange(zf + dx / 4, zf + 0.125, dx / 2)]
+        x = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        dyn = Dynamics(gravity=(9.8 * np.sin(th), 0.0, -9.8 * np.cos(th)), boundary="slip", wall_margin=1.6 * dx,
+                       boundary_conditions=[{"type": "surface_collider", "point": [0.5, 0.5, zf], "normal": [0, 0, 1],
+                                             "surface": "separate", "friction": mu, "start_time": 0.0}])
+        sol = MPMSolver([m], n_grid=G, dynamics=dyn, backend="cpu")
+        sol.set_particles(x, np.full(len(x), (dx / 2) ** 3), np.zeros(len(x), int))
+        dt = 0.5 * dx / m.wave_speed
+        for _ in range(int(0.3 / dt)):
+            sol.substep(dt)
+        return sol.get_state()["x"][:, 0].mean() - x[:, 0].mean()
+
+    clear, overlap = slide(9.8), slide(1.8)  # the wall's band [1.6, 2.6) cells holds the ground's node 2
+    assert abs(overlap / clear - 1.0) < 0.1, (overlap, clear)

@@ -132,3 +132,49 @@ def test_plan_views_leave_hints_out_unless_chosen_by_them():
                               {"name": "stone", "at": None, "box": None, "static": True}]
     assert v["region"] == {"instances": ["a duck", 0]}
     assert scene_view(sc, "prepare")["region"] == {"box": [[0, 0, 0], [1, 1, 1]]}
+
+
+def test_static_table_instance_is_a_collider_the_dropped_jelly_rests_on(caplog):
+    """A static instance (no particles: particles.h5 ``static_x`` points with its label) is a
+    level-set collider of the simulation: a jelly block dropped 1 cm onto a static table top
+    comes to rest on it (not on the ground 0.2 m below), and the table costs no particles.
+    (Materials, grid and dynamics as the fixed-slab test of test_mpm_rigid.py: same kernels.)"""
+    from physgs_steps.mpm import Material
+    from physgs_steps.simulate import build_solver
+
+    def box(lo, hi, s):
+        axes = [np.arange(a + s / 2, b - 1e-9, s) for a, b in zip(lo, hi)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+    s, h, top = 1 / 64, 0.125, 0.36
+    table = box([0.30, 0.30, top - 3 * s], [0.70, 0.70, top], s)            # static instance 0, top face at `top`
+    xj = box([0.43, 0.43, top + 0.01], [0.57, 0.57, top + 0.09], s)          # jelly 1 cm above it
+    other = box([0.30, 0.30, 0.80], [0.40, 0.40, 0.82], s)                   # surroundings (label -1)
+    parts = {"x": xj, "vol": np.full(len(xj), s ** 3), "label": np.ones(len(xj), np.int32),
+             "static_x": np.r_[table, other], "static_label": np.r_[np.zeros(len(table), np.int32),
+                                                                    np.full(len(other), -1, np.int32)]}
+    jelly = Material("fixed_corotated", "identity", E=5.0e4, nu=0.3, density=1000.0, name="jelly")
+    params = {"instances": [{"label": 0, "name": "table", "surface": "separate", "friction": 0.5}]}
+    cfg = {"device": "cpu", "sim": {"n_grid": 32, "domain_size": 1.0},
+           "scene": {"dynamics": {"ground": {"height": h, "friction": 0.5, "surface": "separate"}, "damping": 2.0}}}
+    with caplog.at_level(logging.INFO):
+        sol = build_solver(parts, [jelly], [1], cfg, LOG, params)
+    assert sol.n_particles == len(xj)                                          # the table has no particles
+    assert "static instance table (label 0): STATIC COLLIDER" in caplog.text
+    assert "static surroundings (label -1): STATIC COLLIDER" in caplog.text
+    dt = 0.4 * (1 / 32) / jelly.wave_speed
+    for _ in range(int(0.75 / dt)):
+        sol.substep(dt)
+    st = sol.get_state()
+    zj = st["x"][:, 2]
+    # on the table top (within a quarter cell: the level set is sampled at the grid nodes), not in it
+    assert zj.min() > top - 0.25 / 32 and zj.min() < top + 0.5 / 32
+    assert np.abs(st["v"]).max() < 0.05
+    # a static point inside the material at the start is left out (it would push the material),
+    # with the table's points within a cell of the material touching it; the rest of the table stays
+    touching = {**parts, "static_x": np.r_[table, xj[:1]], "static_label": np.zeros(len(table) + 1, np.int32)}
+    from physgs_steps.simulate import static_colliders
+    geoms = static_colliders(touching, params, cfg, LOG)
+    left = geoms[0].points
+    assert len(geoms) == 1 and np.linalg.norm(left - xj[0], axis=1).min() > 1 / 32
+    assert 0.95 * len(table) < len(left) < len(table)

@@ -3,6 +3,7 @@ people write them, problems are one-line messages (never tracebacks), `physgs ch
 from __future__ import annotations
 
 import copy
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -108,8 +109,9 @@ def run_dir(tmp_path_factory):
 
 
 def smk(cwd: Path, *args: str) -> subprocess.CompletedProcess:
+    # one process per job, as before worker.enabled auto served --cores 1 runs: no worker left behind
     return subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", *args], cwd=cwd, capture_output=True,
-                          text=True, timeout=300, stdin=subprocess.DEVNULL)
+                          text=True, timeout=300, stdin=subprocess.DEVNULL, env={**os.environ, "PHYSGS_WORKER": "0"})
 
 
 def one_line_error(p: subprocess.CompletedProcess) -> str:

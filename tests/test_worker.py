@@ -44,7 +44,13 @@ def test_policy(monkeypatch):
     assert not W.wants_worker("fill", {"enabled": True, "stages": ["render"]})
     assert not W.wants_worker("render", {"enabled": False})
     monkeypatch.setattr(W, "has_nvidia_gpu", lambda: False)
+    monkeypatch.delenv(W.RUN_CORES_ENV, raising=False)
     assert not W.wants_worker("render", {"enabled": "auto"})
+    monkeypatch.setenv(W.RUN_CORES_ENV, "2")   # a local run with 2 cores: its jobs may run side by side
+    assert not W.wants_worker("render", {"enabled": "auto"})
+    monkeypatch.setenv(W.RUN_CORES_ENV, "1")   # --cores 1: the jobs run one after the other anyway
+    assert W.wants_worker("render", {"enabled": "auto"})
+    monkeypatch.delenv(W.RUN_CORES_ENV)
     monkeypatch.setattr(W, "has_nvidia_gpu", lambda: True)
     assert W.wants_worker("render", {"enabled": "auto"})
     monkeypatch.setenv("PHYSGS_WORKER", "0")

@@ -743,13 +743,14 @@ def filled_scale(fcfg: dict) -> float:
 
 
 def write_particles(path, scene, labels: np.ndarray, result: FillResult, fcfg: dict, drivers: np.ndarray,
-                    static_x: np.ndarray) -> int:
+                    static_x: np.ndarray, static_label: np.ndarray | None = None) -> int:
     """Write particles.h5 (CONTRACTS.md) plus per-particle ``opacity``, ``log_scales``, ``quats``.
 
     Rows 0..G-1 are the gaussians that are particles (scene.ply rows ``gaussian_row``,
     ascending), then the filled particles; ``driver`` marks the particles whose states
     final.h5 stores (carrier.h5 ``drivers``), ``static_x`` holds points of the static
-    surroundings inside the domain (collider geometry). Returns P.
+    surroundings and static instances inside the domain (collider geometry), ``static_label``
+    their labels (-1: surroundings). Returns P.
     """
     import h5py
 
@@ -776,6 +777,8 @@ def write_particles(path, scene, labels: np.ndarray, result: FillResult, fcfg: d
             h.create_dataset("log_scales", data=log_scales.astype(np.float32))
             h.create_dataset("quats", data=quats.astype(np.float32))
             h.create_dataset("static_x", data=np.asarray(static_x, np.float32).reshape(-1, 3))
+            sl = np.full(len(h["static_x"]), -1, np.int32) if static_label is None else static_label
+            h.create_dataset("static_label", data=np.asarray(sl, np.int32))
             h.attrs["n_gaussians"] = scene.n
             h.attrs["n_instances"] = int(labels.max()) + 1 if labels.size else 0
             h.attrs["particles"] = particles_mode(fcfg)
@@ -784,18 +787,22 @@ def write_particles(path, scene, labels: np.ndarray, result: FillResult, fcfg: d
     return g + f
 
 
-def static_points(means: np.ndarray, static: np.ndarray, fcfg: dict) -> np.ndarray:
-    """[S, 3] points of the static gaussians (``static`` [N] bool) inside the domain [0, 1]^3,
-    thinned to one per sub-cell of the particle spacing: the geometry static surroundings
-    and static instances give to colliders."""
+def static_points(means: np.ndarray, static: np.ndarray, labels: np.ndarray, fcfg: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Points of the static gaussians (``static`` [N] bool) inside the domain [0, 1]^3, thinned
+    to one per sub-cell of the particle spacing within each label (a static instance's label,
+    -1 for the static surroundings): the geometry static surroundings and static instances
+    give to colliders.  Returns (points [S, 3] f32, labels [S] int32)."""
     from .carrier import particle_spacing, representatives
 
     inside = static & ((means >= 0.0) & (means <= 1.0)).all(axis=1)
-    pts = means[inside].astype(np.float64)
-    if pts.shape[0] == 0:
-        return np.zeros((0, 3), np.float32)
-    keep = representatives(pts, particle_spacing(grid_dx(fcfg), fcfg["particles_per_cell"]))
-    return pts[keep].astype(np.float32)
+    cell = particle_spacing(grid_dx(fcfg), fcfg["particles_per_cell"])
+    pts, labs = [np.zeros((0, 3), np.float32)], [np.zeros(0, np.int32)]
+    for lab in np.unique(labels[inside]):
+        rows = np.flatnonzero(inside & (labels == lab))
+        keep = rows[representatives(means[rows].astype(np.float64), cell)]
+        pts.append(means[keep].astype(np.float32))
+        labs.append(np.full(keep.size, lab, np.int32))
+    return np.concatenate(pts), np.concatenate(labs)
 
 
 def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
@@ -831,8 +838,8 @@ def run(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> dict:
                             fcfg["carrier_neighbors"], spacing)
     result.seconds["carrier"] = time.perf_counter() - t1
     t2 = time.perf_counter()
-    static_x = static_points(scene.means, carrier.static, fcfg)
-    p = write_particles(outputs["particles"], scene, labels, result, fcfg, carrier.drivers, static_x)
+    static_x, static_label = static_points(scene.means, carrier.static, labels, fcfg)
+    p = write_particles(outputs["particles"], scene, labels, result, fcfg, carrier.drivers, static_x, static_label)
     write_carrier(outputs["carrier"], carrier)
     t_write = time.perf_counter() - t2
     result.seconds["load"] = t_load

@@ -19,6 +19,7 @@ import datetime as _dt
 import importlib.metadata as _md
 import os
 import platform
+import shutil
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -149,6 +150,16 @@ def device_info() -> dict:
             info["gpu"] = torch.cuda.get_device_name(0)
     except Exception:  # pragma: no cover - a broken CUDA install
         pass
+    if info["gpu"] is None and shutil.which("nvidia-smi"):
+        # report jobs do not import torch: ask the driver (no CUDA context is made)
+        try:
+            p = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                               text=True, timeout=10)
+            names = [n.strip() for n in p.stdout.splitlines() if n.strip()] if p.returncode == 0 else []
+            if names:
+                info["gpu"] = names[0] if len(names) == 1 else f"{len(names)} x {names[0]}"
+        except (OSError, subprocess.SubprocessError):
+            pass
     return info
 
 
@@ -170,6 +181,6 @@ def provenance_markdown(prov: dict) -> str:
     for k in sorted(set(prov) - {"date", "commit", "dirty", "versions", "machine"}):
         lines.append(f"- {k}: {format_value(prov[k])}")
     gpu = m.get("gpu")
-    lines.append(f"- machine: {m.get('cpu')} ({m.get('cores')} cores){'; GPU ' + gpu if gpu else '; no GPU used'}")
+    lines.append(f"- machine: {m.get('cpu')} ({m.get('cores')} cores){'; GPU ' + gpu if gpu else '; no GPU found'} (the machine that made this report)")
     lines.append("- versions: " + ", ".join(f"{k} {val}" for k, val in v.items() if val is not None))
     return "\n".join(lines) + "\n"

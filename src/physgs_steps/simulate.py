@@ -35,6 +35,7 @@ import numpy as np
 
 from .errors import ConfigError, InputError, SimulationError
 from .runtime import atomic_path, json_text, peak_rss_mb, read_json_input
+from .mpm.colliders import StaticGeometry
 from .mpm.dynamics import Dynamics, describe_counts
 from .mpm.materials import Material
 from .mpm.rest import RestPolicy
@@ -44,12 +45,13 @@ from .mpm.stability import Thresholds, cfl_note
 from .mpm.timestep import TimeStepper
 
 DEFAULT_KEY_FRAMES = (0.0, 0.5, 1.0)
+CLEARANCE_CELLS = 1.0  # static collider points this close (grid cells) to material touching them are left out
 
 
 # ============================================================================ inputs
 def load_particles(path: str | Path) -> dict:
     """Read particles.h5: {"x" [P,3] f32, "label" [P] int32, "filled" [P] bool, "vol" [P] f32,
-    "driver" [P] bool, "n_gaussians"}.  ``driver`` (the particles whose states final.h5 stores)
+    "driver" [P] bool, "static_x" [S,3] f32, "static_label" [S] int32, "n_gaussians"}.  ``driver`` (the particles whose states final.h5 stores)
     defaults to the non-filled rows when the file has none.  Raises InputError on a
     missing/malformed file."""
     path = Path(path)
@@ -62,6 +64,9 @@ def load_particles(path: str | Path) -> dict:
                 raise InputError(path, f"missing datasets {missing}")
             out = {"x": f["x"][()], "label": f["label"][()], "filled": f["filled"][()].astype(bool), "vol": f["vol"][()]}
             out["driver"] = f["driver"][()].astype(bool) if "driver" in f else ~out["filled"]
+            out["static_x"] = f["static_x"][()].reshape(-1, 3) if "static_x" in f else np.zeros((0, 3), np.float32)
+            out["static_label"] = (f["static_label"][()] if "static_label" in f
+                                   else np.full(len(out["static_x"]), -1, np.int32))
             n_g = f.attrs.get("n_gaussians")
     except OSError as e:
         raise InputError(path, f"not a readable HDF5 file: {e}") from None
@@ -76,6 +81,11 @@ def load_particles(path: str | Path) -> dict:
             raise InputError(path, f"{k} has {int((~np.isfinite(out[k])).sum())} non-finite values")
     if np.any(out["vol"] <= 0):
         raise InputError(path, "vol must be > 0 for every particle")
+    if out["static_label"].shape != (len(out["static_x"]),):
+        raise InputError(path, f"static_label must have shape [{len(out['static_x'])}] (one per static_x row), "
+                               f"got {out['static_label'].shape}")
+    if not np.all(np.isfinite(out["static_x"])):
+        raise InputError(path, "static_x has non-finite values")
     out["n_gaussians"] = int(n_g) if n_g is not None else int((~out["filled"]).sum())
     return out
 
@@ -128,15 +138,19 @@ def _forward_frames(cfg: dict) -> int:
 
 
 # ============================================================================ set-up
-def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg: dict, log: logging.Logger) -> MPMSolver:
-    """A loaded MPMSolver for the particles, materials and cfg (sim + scene dynamics)."""
+def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg: dict, log: logging.Logger,
+                 params: dict | None = None) -> MPMSolver:
+    """A loaded MPMSolver for the particles, materials and cfg (sim + scene dynamics); the static
+    instances and surroundings (particles.h5 ``static_x``) are its colliders
+    (:func:`static_colliders`) unless ``sim.static_colliders`` is false."""
     sim = cfg["sim"]
     scene = cfg.get("scene") or {}
     dyn = Dynamics.from_config(scene.get("dynamics"), source=str(scene.get("_path", "scene file")))
     materials = rigid_setting(materials, sim)
+    static = static_colliders(parts, params, cfg, log) if sim.get("static_colliders", True) else []
     solver = MPMSolver(materials, n_grid=int(sim["n_grid"]), domain_size=float(sim["domain_size"]), dynamics=dyn,
                        backend=_backend(cfg), labels=labels, sort_particles=bool(sim.get("sort_particles", True)),
-                       p2g=str(sim.get("p2g", "auto")))
+                       p2g=str(sim.get("p2g", "auto")), static=static)
     index = {l: i for i, l in enumerate(labels)}
     material = np.array([index[int(l)] for l in parts["label"]], np.int64)
     solver.set_particles(parts["x"], parts["vol"], material)
@@ -156,6 +170,59 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
     log.info("MPM: %d particles simulated (%d static), grid %d^3 (dx %.4g m), backend %s, %s", solver.n_particles,
              solver.n_input - solver.n_particles, solver.n_grid, solver.dx, solver.arch, describe_counts(solver.bound))
     return solver
+
+
+def static_colliders(parts: dict, params: dict | None, cfg: dict, log: logging.Logger) -> list[StaticGeometry]:
+    """The static instances and static surroundings as level-set colliders (colliders.py).
+
+    They have no particles (fill gives them none); particles.h5 ``static_x`` holds their points
+    inside the domain, ``static_label`` the instance each belongs to (-1: the surroundings).
+    One StaticGeometry per static instance (surface kind and friction of its params.json entry
+    when it has one) and one for the surroundings (``separate``, friction 0.5).  Where the
+    material touches the static geometry at the start (a simulated particle within one point
+    spacing of a static point: a ball on its seat), the static points within one grid cell
+    (:data:`CLEARANCE_CELLS`) of the touching particles are left out: the collider's surface
+    (half a spacing beyond its points) and its reaction band (one cell in front of it) would
+    lie in the material and squeeze it (the winter fountain's ball: J fell to 0.003 in 66
+    frames when only the points within one spacing were left out; with one cell it comes to
+    rest on its seat).  Material that starts clear of the static geometry (an object above
+    a table) leaves it whole.
+    Their cost per substep is the grid's boundary treatment only (no particles)."""
+    from scipy.spatial import cKDTree
+
+    from .mpm.colliders import estimate_spacing
+
+    sx, sl = np.asarray(parts.get("static_x", np.zeros((0, 3))), np.float64), np.asarray(parts.get("static_label", []))
+    if len(sx) == 0:
+        return []
+    entries = {e.get("label"): e for e in ((params or {}).get("instances") or []) if isinstance(e, dict)}
+    names = {l: str(e.get("name") or f"instance {l}") for l, e in entries.items()}
+    spacing = estimate_spacing(sx)
+    clearance = max(spacing, CLEARANCE_CELLS / float(cfg["sim"]["n_grid"]))  # domain units
+    x = np.asarray(parts["x"], np.float64)
+    d, _ = cKDTree(sx).query(x, distance_upper_bound=spacing)
+    touching = x[np.isfinite(d)]  # [T, 3] simulated particles in contact with static points at the start
+    clear = np.ones(len(sx), bool)
+    if len(touching):
+        d, _ = cKDTree(touching).query(sx, distance_upper_bound=clearance)
+        clear = ~np.isfinite(d)
+    out = []
+    for lab in np.unique(sl):
+        sel = sl == lab
+        keep = sel & clear
+        name = "static surroundings" if lab < 0 else f"static instance {names.get(int(lab), f'label {int(lab)}')}"
+        if keep.sum() < 1:
+            log.info("%s: all %d points touch simulated particles, no collider", name, int(sel.sum()))
+            continue
+        e = entries.get(int(lab), {})
+        surface, friction = str(e.get("surface") or "separate"), float(e.get("friction", 0.5))
+        out.append(StaticGeometry(sx[keep], spacing=spacing, surface=surface, friction=friction, name=name))
+        lo, hi = sx[keep].min(0), sx[keep].max(0)
+        log.info("%s (label %d): STATIC COLLIDER (level set, not simulated) from %d points (%d next to the simulated "
+                 "material left out), %s, friction %g, box [%s]..[%s] (domain units)", name, int(lab), int(keep.sum()),
+                 int((sel & ~clear).sum()), surface, friction, ", ".join(f"{v:.3f}" for v in lo),
+                 ", ".join(f"{v:.3f}" for v in hi))
+    return out
 
 
 def rigid_setting(materials: list[Material], sim: dict) -> list[Material]:
@@ -180,7 +247,7 @@ def _prepare(inputs: dict, cfg: dict, log: logging.Logger):
     params, materials, labels = load_materials(inputs["params"], parts["label"])
     stepper = TimeStepper.from_config(cfg["sim"])
     th = Thresholds.from_config(cfg["sim"].get("stability"))
-    solver = build_solver(parts, materials, labels, cfg, log)
+    solver = build_solver(parts, materials, labels, cfg, log, params)
     note = cfl_note(materials, stepper, solver.dx)
     if note:
         log.warning("%s", note)

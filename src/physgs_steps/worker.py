@@ -15,7 +15,10 @@ jobs: prepare, cluster, fill and the parameter stages too, whose own work is a f
 second to a few seconds, less than a process start) when ``worker.enabled`` is true, or
 ``auto`` and this machine has an
 NVIDIA GPU (``/proc/driver/nvidia/gpus`` lists one and CUDA_VISIBLE_DEVICES does not hide
-it).  The environment variable ``PHYSGS_WORKER`` (``0``/``1``) overrides the config.  Every
+it) or the local Snakemake run has one core (``--cores 1``: its jobs run one after the other
+anyway, so serving them in one process queues nothing; on the 2-core CPU machine it saves
+the 2-7 s start of every job and the kernel loading of the second and third simulation;
+common.smk sets ``PHYSGS_RUN_CORES``).  The environment variable ``PHYSGS_WORKER`` (``0``/``1``) overrides the config.  Every
 other case runs the stage in the job's own process, as without a worker.
 
 Lifetime and safety:
@@ -101,6 +104,26 @@ def has_nvidia_gpu() -> bool:
         return False
 
 
+RUN_CORES_ENV = "PHYSGS_RUN_CORES"  # the local Snakemake run's --cores (set by common.smk)
+
+
+def note_run_cores(cores) -> None:
+    """Record a local Snakemake run's ``--cores`` for the jobs' ``worker.enabled: auto`` policy
+    (called by common.smk in the main process; ``cores()`` raises where none were given, e.g.
+    a dry run, and inside a SLURM job the run is not local: both leave the policy to the GPU
+    probe)."""
+    n = None
+    if not os.environ.get("SLURM_JOB_ID"):
+        try:
+            n = str(cores())
+        except Exception:
+            n = None
+    if n is None:
+        os.environ.pop(RUN_CORES_ENV, None)
+    else:
+        os.environ[RUN_CORES_ENV] = n
+
+
 def wants_worker(stage: str, wcfg: dict | None) -> bool:
     """Whether ``stage`` runs in the warm worker under the ``worker`` config section."""
     wcfg = wcfg or {}
@@ -110,7 +133,7 @@ def wants_worker(stage: str, wcfg: dict | None) -> bool:
     else:
         enabled = wcfg.get("enabled", "auto")
         if enabled == "auto":
-            enabled = has_nvidia_gpu()
+            enabled = has_nvidia_gpu() or os.environ.get(RUN_CORES_ENV, "").strip() == "1"
     return bool(enabled) and stage in tuple(wcfg.get("stages", DEFAULT_STAGES))
 
 

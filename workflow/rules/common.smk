@@ -4,6 +4,7 @@
 # choices>") and exit status 1, never a traceback. A broken scene file stops only the
 # targets of that scene, when one is requested (plans are made on first use);
 # `physgs check` lists every problem of every scene file at once.
+import os
 import sys
 from pathlib import Path
 
@@ -12,6 +13,12 @@ sys.path.insert(0, str(Path(workflow.basedir) / "src"))
 from physgs_steps import config as C
 from physgs_steps import plan as P
 from physgs_steps.errors import ConfigError, PhysGSError
+
+# worker.enabled auto serves a local one-core run's jobs in the warm worker (worker.py)
+if workflow.is_main_process and workflow.local_exec:
+    from physgs_steps.worker import note_run_cores
+
+    note_run_cores(lambda: workflow.cores)
 
 
 def fail(err):

@@ -50,7 +50,7 @@ import taichi as ti
 from . import materials as M
 from . import p2g_sorted as P2G
 
-from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
+from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, MIRROR_MASS, TOUCH
 
 from .p2g_sorted import I1, M1, S1, V1, mat3, vec3  # noqa: E402,F401  (per-particle types, defined once there; K.mat3 is used by solver and rigid)
 
@@ -222,14 +222,25 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
         return out
 
     @ti.func
-    def ghost(xn, gv, phi, n, vc, kind, fric, dx, band, grid_v: ti.template(), grid_m: ti.template()):
+    def ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, band, m_min, grid_v: ti.template(),
+              grid_m: ti.template()):
         """The node velocity near a boundary (colliders.py, "Boundary placement"): behind it
         (phi < 0) the linear extrapolation across the surface of the velocity at the mirror
         point ``d = (band + |n|_1) dx`` in front of the surface; in front of it (0 <= phi <
         band dx: nodes whose kernel support holds the surface) the normal velocity on the same
-        line, which gives these nodes the surface's reaction; else the plain node rule."""
+        line, which gives these nodes the surface's reaction; else (or where the mirror's mean
+        node mass is below ``m_min``) the plain node rule.
+
+        ``gv`` is the node's velocity after the boundaries before this one, ``gv0`` before any
+        boundary; ``pushed`` [3] the normal pushes that earlier obstacles at this node have
+        already turned into friction.  A front node's Coulomb friction is ``fric`` times this
+        obstacle's own push on the node's velocity before any boundary, less what an earlier
+        frictional obstacle already charged along the same normal (overlapping bands: a
+        frictionless wall pushing first does not take the floor's friction away, two coincident
+        frictional surfaces do not brake twice).  Returns (velocity, pushed)."""
         G = grid_m.shape[1]
         out = gv
+        pushed_out = pushed
         done = 0
         if phi > -GHOST_BAND * dx:
             dm = dx * (band + ti.abs(n[0]) + ti.abs(n[1]) + ti.abs(n[2]))  # the mirror's trilinear cube lies beyond the band
@@ -239,6 +250,7 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
             fr = g - ti.cast(base, ti.f32)
             acc = ti.Vector.zero(ti.f32, 3)
             wsum = 0.0
+            msum = 0.0
             for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
                 node = base + ti.Vector([i, j, k])
                 if node.min() >= 0 and node.max() < G:
@@ -246,7 +258,8 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
                         w = (fr[0] if i else 1.0 - fr[0]) * (fr[1] if j else 1.0 - fr[1]) * (fr[2] if k else 1.0 - fr[2])
                         acc += w * grid_v[0, node[0], node[1], node[2]]
                         wsum += w
-            if wsum > 1e-6:
+                        msum += w * grid_m[0, node[0], node[1], node[2]]
+            if wsum > 1e-6 and msum >= m_min * wsum:
                 vm = acc / wsum
                 u = vm - vc
                 q = phi / dm
@@ -261,13 +274,18 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
                         if kind >= 1.5:  # separate: it only pushes, and only against approaching material
                             target = q * ti.min(un, 0.0)
                         dn = target - own_n
+                        ot = own - own_n * n
                         if kind < 1.5 or dn > 0.0:
-                            ot = own - own_n * n
-                            if dn > 0.0:  # Coulomb friction of the push
-                                vt = ot.norm()
-                                if vt > 1e-20:
-                                    ot *= ti.max(0.0, vt - fric * dn) / vt
                             out = vc + ot + target * n
+                        # Coulomb friction of this obstacle's own push (on the velocity before
+                        # any boundary; an earlier push along n that already braked is not counted twice)
+                        dn_own = target - (gv0 - vc).dot(n)
+                        if dn_own > 0.0 and fric > 0.0:
+                            dn_f = ti.max(0.0, dn_own - ti.max(pushed.dot(n), 0.0))
+                            vt = ot.norm()
+                            if vt > 1e-20 and dn_f > 0.0:
+                                out -= ot * (1.0 - ti.max(0.0, vt - fric * dn_f) / vt)
+                            pushed_out = pushed + dn_f * n
                 elif kind < 0.5:
                     out = vc + q * u
                 elif kind < 1.5 or un < 0.0:
@@ -283,7 +301,7 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
                 done = 1
         if done == 0:
             out = node_rule(gv, n, vc, kind, fric)
-        return out
+        return out, pushed_out
 
     return SimpleNamespace(slot=_slot, node_rule=node_rule, ghost=ghost, n_obst=n_obst, n_slots=n_slots)
 
@@ -412,7 +430,7 @@ def build(spec: Spec) -> SimpleNamespace:
         vp = v[p]
         if ti.static(has_actions):
             b = act_bits[p]
-            if b != 0:
+            if b != 0 and held == 0:  # a holding region absorbs the forces on what it holds
                 vp = _particle_actions(b, xp, vp, t, dt, dyn)
         mass = p_mass[p]
         affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
@@ -650,6 +668,8 @@ def build(spec: Spec) -> SimpleNamespace:
         for i, j, k in ti.ndrange(G, G, G):
             gv = grid_v[0, i, j, k]
             if grid_m[0, i, j, k] > 0.0:
+                gv0 = gv  # before any boundary (front-band friction reads its own push on it)
+                pushed = ti.Vector.zero(ti.f32, 3)
                 I = ti.Vector([i, j, k])
                 xn = ti.cast(I, ti.f32) * dx
                 engaged = grid_c[0, i, j, k] > 0.0
@@ -662,9 +682,11 @@ def build(spec: Spec) -> SimpleNamespace:
                     if active == 1:
                         if s < n_obst:
                             if engaged and phi < FRONT_BAND * dx:
-                                gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, FRONT_BAND, grid_v, grid_m)
+                                gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, FRONT_BAND,
+                                                       0.0, grid_v, grid_m)
                         elif phi < 0.0:
-                            gv = col.ghost(xn, gv, phi, n, vc, kind, fric, dx, 0.0, grid_v, grid_m)
+                            gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, 0.0,
+                                                   MIRROR_MASS * grid_m[0, i, j, k], grid_v, grid_m)
             grid_b[i, j, k] = gv
         # G2P, F update, return map, stress of the new F; boundaries on deformable particles
         for p in x:
@@ -711,10 +733,16 @@ def build(spec: Spec) -> SimpleNamespace:
                             un = (new_v - vc).dot(n)
                             if un < 0.0:
                                 new_v -= un * n
+            F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
+            if held == 1:
+                # a held particle strains with the field the ghost nodes extend into the box (its
+                # stress keeps the stress continuous across the face) but transfers the holder's
+                # motion, so its momentum does not feed back into the ghost nodes' mirror samples
+                new_v = hv
+                new_C = ti.Matrix.zero(ti.f32, 3, 3)
             v[p] = new_v
             C[p] = new_C
             x[p] = x_new
-            F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
             q = _qrow(mparams, m)
             cid = 0
             if ti.static(n_combo > 1):

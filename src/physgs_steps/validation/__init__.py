@@ -4,7 +4,8 @@ stiff/extreme sweep, the report (``snakemake --cores all validation``; issue #14
 * :mod:`.base`: accuracy settings (n_grid, particles per cell, CFL), particle set-ups, one
   bounded run through the production frame loop, the :class:`~.base.Case` interface;
 * :mod:`.cases`: free fall, axial vibration, rigid rotation, incline with Coulomb friction,
-  column under its own weight, granular column collapse, dam break;
+  column under its own weight, block resting on a floor between grid nodes (boundary
+  placement), granular column collapse, dam break;
 * :mod:`.sweep`: every elasticity x plasticity pair over E, nu, density extremes;
 * :mod:`.report`: REPORT.md, CSVs, figures (Pareto fronts, defaults marked), before/after;
 * :mod:`.stage`: the workflow's stage functions (``workflow/rules/validation.smk``).
