@@ -309,8 +309,8 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
 @functools.lru_cache(maxsize=None)
 def build(spec: Spec) -> SimpleNamespace:
     """The kernels for ``spec`` (built once per process and spec)."""
-    updates = [_make_update(M.ELASTICITY[e], M.PLASTICITY[p], f) for e, p, f in spec.combos]
-    n_combo = len(updates)
+    update = make_dispatch(spec.combos)
+    n_combo = len(spec.combos)
     any_fracture = any(f for _, _, f in spec.combos)
     rigid_cid = spec.combos.index(M.RIGID_KEY) if M.RIGID_KEY in spec.combos else -1
     n_surf, n_cub, n_acc, n_tra, n_rot = spec.counts
@@ -747,14 +747,10 @@ def build(spec: Spec) -> SimpleNamespace:
             cid = 0
             if ti.static(n_combo > 1):
                 cid = mcombo[m]
-            F_new = F_trial
-            tau_new = ti.Matrix.zero(ti.f32, 3, 3)
             ep_p = 0.0
             if ti.static(any_fracture):
                 ep_p = ep[p]
-            for ci in ti.static(range(n_combo)):
-                if cid == ci:
-                    F_new, tau_new, ep_p = updates[ci](F_trial, q, ep_p)
+            F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
             F[p] = F_new
             tau[p] = tau_new
             if ti.static(any_fracture):
@@ -768,8 +764,8 @@ def build_constitutive(combos: tuple) -> SimpleNamespace:
     """Kernels of the constitutive models alone (no grid): ``stress(F, mat, mparams, mcombo,
     ep, tau)`` and ``update(F_trial, mat, mparams, mcombo, ep, F_out, tau_out)`` (return map,
     then the stress of the returned F, exactly as in G2P; ``ep`` is updated in place)."""
-    updates = [_make_update(M.ELASTICITY[e], M.PLASTICITY[p], f) for e, p, f in combos]
-    n_combo = len(updates)
+    update_of = make_dispatch(combos)
+    n_combo = len(combos)
     # the stress depends on the elasticity (and tearing) alone: pairs that share it share one
     # copy of its code (an SVD each), so the kernel compiles once per elasticity, not per pair
     kinds = list(dict.fromkeys((e, f) for e, _, f in combos))
@@ -804,12 +800,7 @@ def build_constitutive(combos: tuple) -> SimpleNamespace:
             cid = 0
             if ti.static(n_combo > 1):
                 cid = mcombo[m]
-            F_new = F_trial[p]
-            tau_new = ti.Matrix.zero(ti.f32, 3, 3)
-            ep_p = ep[p]
-            for ci in ti.static(range(n_combo)):
-                if cid == ci:
-                    F_new, tau_new, ep_p = updates[ci](F_trial[p], q, ep_p)
+            F_new, tau_new, ep_p = update_of(F_trial[p], cid, q, ep[p])
             F_out[p] = F_new
             tau_out[p] = tau_new
             ep[p] = ep_p
@@ -818,21 +809,16 @@ def build_constitutive(combos: tuple) -> SimpleNamespace:
 
 
 def _make_update(el: type, pl: type, fracture: bool = False):
-    """ti.func (F_trial, q, ep) -> (F, tau, ep): return map (then tearing, when the material
-    fractures) and the stress of the returned F."""
-    svd_first = M.svd_before_return_map(el, pl) or fracture
+    """ti.func (F_trial, U, sig, V, q, ep) -> (F, tau, ep): return map (then tearing, when the
+    material fractures) and the stress of the returned F.  ``U, sig, V`` is the SVD of F_trial
+    when :func:`_wants_svd` says the pair uses it (the caller computes it once for all pairs:
+    one inlined SVD per kernel, not one per pair), else unused."""
     svd_ok = M.svd_available(el, pl) or fracture
 
     @ti.func
-    def update(F_trial, q, ep):
+    def update(F_trial, U, sig, V, q, ep):
         mu = q[0]
         lam = q[1]
-        U = ti.Matrix.identity(ti.f32, 3)
-        V = ti.Matrix.identity(ti.f32, 3)
-        sig = ti.Vector([1.0, 1.0, 1.0], dt=ti.f32)
-        if ti.static(svd_first):
-            U, S, V = ti.svd(F_trial)
-            sig = ti.Vector([S[0, 0], S[1, 1], S[2, 2]], dt=ti.f32)
         F_new, U2, sig2, V2 = pl.return_map(F_trial, U, sig, V, mu, lam, q)
         d = 0.0
         ep_out = ep
@@ -853,6 +839,49 @@ def _make_update(el: type, pl: type, fracture: bool = False):
         return F_new, tau, ep_out
 
     return update
+
+
+def _wants_svd(combo: tuple) -> bool:
+    """Whether the (elasticity, plasticity, fracture) pair's update starts from the SVD of the
+    trial F."""
+    e, p, f = combo
+    return M.svd_before_return_map(M.ELASTICITY[e], M.PLASTICITY[p]) or f
+
+
+def make_dispatch(combos: tuple):
+    """ti.func (F_trial, cid, q, ep) -> (F, tau, ep): the update of pair ``combos[cid]``.  The
+    SVD of F_trial is inlined once, before the dispatch, and computed for the particles whose
+    pair uses it (an SVD is most of a pair's code: one per pair made the kernel's compile time
+    grow with every pair that needs one)."""
+    updates = [_make_update(M.ELASTICITY[e], M.PLASTICITY[p], f) for e, p, f in combos]
+    n_combo = len(updates)
+    wants = tuple(int(_wants_svd(c)) for c in combos)  # [n_combo] 0/1
+    any_svd, all_svd = any(wants), all(wants)
+
+    @ti.func
+    def dispatch(F_trial, cid, q, ep):
+        U = ti.Matrix.identity(ti.f32, 3)
+        V = ti.Matrix.identity(ti.f32, 3)
+        sig = ti.Vector([1.0, 1.0, 1.0], dt=ti.f32)
+        if ti.static(any_svd):
+            need = 1
+            if ti.static(not all_svd):
+                need = 0
+                for ci in ti.static(range(n_combo)):
+                    if cid == ci:
+                        need = wants[ci]  # a constant
+            if need == 1:
+                U, S, V = ti.svd(F_trial)
+                sig = ti.Vector([S[0, 0], S[1, 1], S[2, 2]], dt=ti.f32)
+        F_new = F_trial
+        tau_new = ti.Matrix.zero(ti.f32, 3, 3)
+        ep_new = ep
+        for ci in ti.static(range(n_combo)):
+            if cid == ci:
+                F_new, tau_new, ep_new = updates[ci](F_trial, U, sig, V, q, ep)
+        return F_new, tau_new, ep_new
+
+    return dispatch
 
 
 def _make_stress(el: type, fracture: bool = False):
