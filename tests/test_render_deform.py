@@ -161,3 +161,19 @@ def test_view_dependent_colour_follows_rotation():
     assert abs(int(rot_from_x[0, 16, 16, 0]) - int(rest_from_y[0, 16, 16, 0])) <= 1
     assert abs(int(rot_from_x[0, 16, 16, 0]) - int(rest_from_x[0, 16, 16, 0])) > 20
     assert math.isfinite(float(rot_from_x.mean()))
+
+
+def test_elementwise_3x3_products_match_matmul_with_broadcasting():
+    """The CUDA path of the render's 3x3 algebra (written out, no batched GEMM) equals matmul."""
+    from physgs_steps.render.deform import matvec3_elementwise, mul3_elementwise
+
+    g = torch.Generator().manual_seed(3)
+    a = torch.randn(5, 3, 3, generator=g, dtype=torch.float64)
+    b = torch.randn(5, 3, 3, generator=g, dtype=torch.float64)
+    r = torch.randn(3, 3, generator=g, dtype=torch.float64)
+    assert torch.allclose(mul3_elementwise(a, b), a @ b, atol=1e-12)
+    assert torch.allclose(mul3_elementwise(r.T, a), r.T @ a, atol=1e-12)
+    assert torch.allclose(mul3_elementwise(a, r), a @ r, atol=1e-12)
+    v = torch.randn(5, 4, 3, generator=g, dtype=torch.float64)
+    A = torch.randn(5, 4, 3, 3, generator=g, dtype=torch.float64)
+    assert torch.allclose(matvec3_elementwise(A, v), (A @ v.unsqueeze(-1)).squeeze(-1), atol=1e-12)

@@ -37,6 +37,28 @@ from ..gaussians import GaussianScene
 NONFINITE_POLICIES = ("error", "hide")
 
 
+def matmul3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` for [..., 3, 3] stacks (broadcasting). On CUDA written out elementwise:
+    cuBLAS's batched 3x3 products took 3.7 ms per product of 1M matrices on an H100 against
+    0.4 ms elementwise; on the CPU ``matmul`` is the faster one (158 against 589 ms)."""
+    return mul3_elementwise(a, b) if a.is_cuda else a @ b
+
+
+def mul3_elementwise(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] x [..., 3, 3] products as broadcast multiply-and-sum (no batched GEMM)."""
+    return (a[..., :, :, None] * b[..., None, :, :]).sum(dim=-2)
+
+
+def matvec3(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``a @ v`` for [..., 3, 3] matrices and [..., 3] vectors (see :func:`matmul3`)."""
+    return matvec3_elementwise(a, v) if a.is_cuda else (a @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def matvec3_elementwise(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] x [..., 3] products as broadcast multiply-and-sum."""
+    return (a * v[..., None, :]).sum(dim=-1)
+
+
 @dataclass
 class Gaussians:
     """Gaussians ready to render (one frame), torch tensors on one device.
@@ -106,7 +128,7 @@ class SourceMap:
     def linear(self, F: torch.Tensor) -> torch.Tensor:
         """[..., 3, 3] sim-frame linear maps (deformation gradients) -> ``R^T F R``."""
         R = torch.as_tensor(self.R, dtype=F.dtype, device=F.device)
-        return R.T @ F @ R
+        return matmul3(matmul3(R.T, F), R)
 
     def covariances(self, cov: torch.Tensor) -> torch.Tensor:
         """[..., 3, 3] sim-frame covariances -> ``R^T C R / s^2``."""
@@ -219,14 +241,14 @@ def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: tor
     """
     dev = rest.means.device
     x = smap.points(x_sim.to(dev, torch.float64)).float()
-    Fs = smap.linear(F_sim.to(dev, torch.float64)).float()
+    Fs = smap.linear(F_sim.to(dev, torch.float32))  # float32: R is orthonormal, |F| ~ 1
     opac = rest.opacities
     if hide is not None:
         x = torch.where(hide[:, None].to(dev), torch.zeros_like(x), x)
         Fs = torch.where(hide[:, None, None].to(dev), torch.eye(3, device=dev).expand_as(Fs), Fs)
     full = index.numel() == rest.n and bool((index == torch.arange(rest.n, device=index.device)).all())
     idx = index.to(dev)
-    cov_rows = Fs @ rest.covars[idx] @ Fs.transpose(1, 2)
+    cov_rows = matmul3(matmul3(Fs, rest.covars[idx]), Fs.transpose(1, 2))  # [Nv, 3, 3] F Sigma F^T
     rot_rows = polar_rotation(Fs) if with_rotation else None
     if full:
         means, covars, rots = x, cov_rows, rot_rows
@@ -284,26 +306,31 @@ class CarrierMap:
             x0: [M, 3] stored positions at frame 0 (sim frame).
         Drivers that final.h5 does not store (instances the simulation left out) count as
         absent: a gaussian without any stored driver is drawn at rest.
+        The work is [N, K] gathers, done on ``device`` (1M gaussians x 8 drivers: numpy took
+        2.5 s of a 10 s render stage on the GPU machine).
         """
-        order = np.argsort(particle_index)
-        pos = np.searchsorted(particle_index[order], carrier.drivers)
-        pos = np.minimum(pos, len(order) - 1)
-        stored = particle_index[order][pos] == carrier.drivers
-        col_of_driver = np.where(stored, order[pos], -1)  # [D] final.h5 column of each carrier driver
-        idx = carrier.index.astype(np.int64)
-        col = np.where(idx >= 0, col_of_driver[np.maximum(idx, 0)], -1)  # [N, K]
-        w = np.where(col >= 0, carrier.weight, 0.0).astype(np.float64)
-        tot = w.sum(axis=1)
-        rows = np.flatnonzero(tot > 0)
-        w = (w[rows] / tot[rows, None]).astype(np.float32)
-        col = np.maximum(col[rows], 0)
+        dev = torch.device(device)
+        pidx = torch.from_numpy(np.ascontiguousarray(particle_index, np.int64)).to(dev)  # [M]
+        order = torch.argsort(pidx)
+        sorted_idx = pidx[order]
+        drivers = torch.from_numpy(np.ascontiguousarray(carrier.drivers, np.int64)).to(dev)  # [D]
+        pos = torch.searchsorted(sorted_idx, drivers).clamp_max(max(len(order) - 1, 0))
+        stored = sorted_idx[pos] == drivers
+        col_of_driver = torch.where(stored, order[pos], torch.full_like(pos, -1))  # [D] final.h5 column of each driver
+        idx = torch.from_numpy(np.ascontiguousarray(carrier.index)).to(dev).long()  # [N, K]
+        col = torch.where(idx >= 0, col_of_driver[idx.clamp_min(0)], torch.full_like(idx, -1))  # [N, K]
+        w = torch.from_numpy(np.ascontiguousarray(carrier.weight)).to(dev).double()
+        w = torch.where(col >= 0, w, torch.zeros_like(w))
+        tot = w.sum(dim=1)  # [N]
+        rows = torch.nonzero(tot > 0).squeeze(1)  # [Ns]
+        w = (w[rows] / tot[rows, None]).float()
+        col = col[rows].clamp_min(0)
         offset = None
-        identity = col.shape[1] == 1
-        if not identity:
-            offset = (rest_means_sim[rows, None, :].astype(np.float64) - x0[col].astype(np.float64)).astype(np.float32)
-        return CarrierMap(rows=torch.from_numpy(rows).to(device), index=torch.from_numpy(col).to(device),
-                          weight=torch.from_numpy(w).to(device),
-                          offset=None if offset is None else torch.from_numpy(offset).to(device))
+        if col.shape[1] != 1:
+            means = torch.from_numpy(np.ascontiguousarray(rest_means_sim)).to(dev).double()  # [N, 3]
+            xs0 = torch.from_numpy(np.ascontiguousarray(x0)).to(dev).double()  # [M, 3]
+            offset = (means[rows, None, :] - xs0[col]).float()  # [Ns, K, 3]
+        return CarrierMap(rows=rows, index=col, weight=w, offset=offset)
 
     def apply(self, x: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Stored states x [M, 3], F [M, 3, 3] -> ([Ns, 3] centres, [Ns, 3, 3] deformation
@@ -319,9 +346,9 @@ class CarrierMap:
             i = self.index[a:b]  # [c, K]
             w, d = self.weight[a:b].to(x.dtype), self.offset[a:b].to(x.dtype)  # [c, K], [c, K, 3]
             Fk = F[i]  # [c, K, 3, 3]
-            pred = x[i] + (Fk @ d.unsqueeze(-1)).squeeze(-1)  # [c, K, 3]
+            pred = x[i] + matvec3(Fk, d)  # [c, K, 3]
             xs[a:b] = (w.unsqueeze(-1) * pred).sum(dim=1)
-            Fs[a:b] = (w.to(F.dtype)[..., None, None] * Fk).sum(dim=1)
+            Fs[a:b] = torch.einsum("ck,ckij->cij", w.to(F.dtype), Fk)
         return xs, Fs
 
     def hidden(self, bad: torch.Tensor) -> torch.Tensor:

@@ -275,7 +275,9 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     t0 = time.perf_counter()
     cmap = CarrierMap.build(carrier, frames.particle_index, scene.means, frames.x(0), dev)
     index = cmap.rows
-    static_rows = np.setdiff1d(np.arange(scene.n), index.cpu().numpy())
+    moving = torch.zeros(scene.n, dtype=torch.bool, device=index.device)
+    moving[index] = True
+    static_rows = torch.nonzero(~moving).squeeze(1).cpu().numpy()  # [N - Ns] drawn at rest
     log.info("carrier: %d gaussians move with %d stored particles (%s, %d per gaussian), %d drawn at rest; %.2f s",
              index.numel(), frames.m, "identity" if cmap.identity else "budget", cmap.index.shape[1],
              static_rows.size, time.perf_counter() - t0)
