@@ -407,7 +407,7 @@ def test_workflow_through_slurm_matches_local_run(slurm, tiny_bear_run, tmp_path
     out = snakemake(remote, [RUN_TARGET, "--workflow-profile", "profiles/slurm", "--configfile", TEST_CONFIG,
                              # test-only settings (README "Running on a cluster": a real cluster needs none)
                              "--slurm-status-command", "squeue", "--slurm-no-account",
-                             "--slurm-init-seconds-before-status-checks", "3",
+                             "--slurm-init-seconds-before-status-checks", "3", "--seconds-between-status-checks", "1",
                              "--slurm-keep-successful-logs", "--latency-wait", "10"],
                     SLURM_TIMEOUT_S, env, context=slurm.logs)
     print(f"SLURM run {time.monotonic() - t0:.0f} s")

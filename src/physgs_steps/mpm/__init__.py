@@ -45,7 +45,7 @@ import importlib
 # Names are imported on first use (PEP 562), so that e.g. ``physgs_steps.mpm.timestep`` (BGDO)
 # does not pull in Taichi: a stage process imports only what it uses.
 _EXPORTS = {
-    "Dynamics": "dynamics", "StaticGeometry": "colliders", "Material": "materials", "preset": "materials",
+    "Dynamics": "dynamics", "StaticGeometry": "colliders", "Material": "material", "preset": "material",
     "RunResult": "runner",
     "run_frames": "runner", "MPMSolver": "solver", "Thresholds": "stability", "TimeStepper": "timestep",
 }

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .materials import Material
+from .material import Material
 from .timestep import StepPlan, TimeStepper
 
 

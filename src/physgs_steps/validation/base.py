@@ -26,7 +26,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import ConfigError
-from ..mpm import Dynamics, Material, MPMSolver, Thresholds, TimeStepper, run_frames
+from ..mpm import Dynamics, Material, Thresholds, TimeStepper  # no Taichi: the workflow plans from these
 
 LOG = logging.getLogger("physgs.validation")
 SCALES = ("smoke", "cpu", "full")
@@ -160,6 +160,8 @@ def simulate(scene: Scene, setting: Setting, *, fps: float, n_frames: int,
     at ``fps``; ``on_frame(k, t, state)`` gets every stable frame's state in METRES
     (``x`` [P,3] m, ``v`` [P,3] m/s, ``C``, ``F``).  Bounded: at most ``max_substeps`` per
     frame and ``timeout_s`` wall seconds."""
+    from ..mpm import MPMSolver, run_frames  # Taichi: loaded when a case runs, not when it is planned
+
     t_wall = time.perf_counter()
     L = scene.domain_size
     solver = MPMSolver(scene.materials, n_grid=setting.n_grid, domain_size=L, dynamics=scene.dynamics,
