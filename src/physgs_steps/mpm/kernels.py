@@ -517,7 +517,7 @@ def build(spec: Spec) -> SimpleNamespace:
         # the rigid bodies' grid projection (1-element when no instance is rigid): grid_r
         # [T,G,G,G] i32 owner (1 + body; + covered, - fringe), grid_rm [T,G,G,G] and grid_rv
         # [T,G,G,G] vec3 the rigid particles' mass and momentum (then velocity), mbody [K] i32
-        # body of each material (-1: none), gpart [G, B, N_GSUM] f64 per-slab sums, gbody
+        # body of each material (-1: none), gpart [G^2 + G, B, N_GSUM] f64 per-column and per-slab sums, gbody
         # [B, 10] f64 per body: centre, V, omega of its grid field, covering mass (input)
         inv_dx = 1.0 / dx
         n_chunks = grid_m.shape[0]
@@ -608,11 +608,14 @@ def build(spec: Spec) -> SimpleNamespace:
                 if o > 0:
                     if grid_rm[0, i, j, k] < gbody[o - 1, 9]:
                         grid_r[0, i, j, k] = -o
-            for i in range(G):  # per x slab (fixed summation order: reproducible)
+            # sums in a fixed order (reproducible), parallel enough for a GPU: per (x, y) column
+            # over z into gpart[i G + j], then per x slab over y into gpart[G^2 + i], then over x
+            for i, j in ti.ndrange(G, G):
+                cix = i * G + j
                 for b in range(B):
                     for q in ti.static(range(N_GSUM)):
-                        gpart[i, b, q] = 0.0
-                for j, k in ti.ndrange(G, G):
+                        gpart[cix, b, q] = 0.0
+                for k in range(G):
                     o = grid_r[0, i, j, k]
                     m = ti.cast(grid_m[0, i, j, k], ti.f64)
                     vn = ti.cast(grid_v[0, i, j, k], ti.f64)
@@ -627,13 +630,20 @@ def build(spec: Spec) -> SimpleNamespace:
                                m * xv[1], m * xv[2], m * xn[0] * xn[0], m * xn[1] * xn[1], m * xn[2] * xn[2],
                                m * xn[0] * xn[1], m * xn[0] * xn[2], m * xn[1] * xn[2]]
                         for q in ti.static(range(N_GSUM)):
-                            gpart[i, b, q] += row[q]
+                            gpart[cix, b, q] += row[q]
+            for i in range(G):
+                for b in range(B):
+                    for q in ti.static(range(N_GSUM)):
+                        acc_s = ti.cast(0.0, ti.f64)
+                        for j in range(G):
+                            acc_s += gpart[i * G + j, b, q]
+                        gpart[G * G + i, b, q] = acc_s
             ti.loop_config(serialize=True)
             for b in range(B):
                 acc = ti.Vector.zero(ti.f64, N_GSUM)
                 for i in range(G):
                     for q in ti.static(range(N_GSUM)):
-                        acc[q] += gpart[i, b, q]
+                        acc[q] += gpart[G * G + i, b, q]
                 c0 = ti.Vector.zero(ti.f64, 3)
                 V = ti.Vector.zero(ti.f64, 3)
                 w = ti.Vector.zero(ti.f64, 3)

@@ -254,7 +254,7 @@ class MPMSolver:
         nb = max(len(free), 1)
         G, T = self.n_grid, self.n_chunks
         self.grid_r = ti.ndarray(ti.i32, (T, G, G, G) if free else (1, 1, 1, 1))
-        self._gpart = ti.ndarray(ti.f64, (G if free else 1, nb, K.N_GSUM))  # per x slab and body: grid sums
+        self._gpart = ti.ndarray(ti.f64, (G * G + G if free else 1, nb, K.N_GSUM))  # per column, slab, body: grid sums
         self.grid_rm = ti.ndarray(ti.f32, (T, G, G, G) if free else (1, 1, 1, 1))  # rigid mass per node
         self.grid_rv = ti.ndarray(K.vec3, (T, G, G, G) if free else (1, 1, 1, 1))  # rigid momentum, velocity
         gbody = np.zeros((nb, 10))  # per body: centre, V, omega of the covered nodes; covering mass
@@ -262,7 +262,8 @@ class MPMSolver:
         self._gbody = _ndarray_from(gbody, ti.f64)
         if free:
             bodies = [np.flatnonzero(mat_sorted == k) for k in free]
-            self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, self.n_chunks, [self.materials[k].name for k in free])
+            chunks = rigid_mod.reduce_chunks(self.arch, self.n_chunks, sum(len(i) for i in bodies))
+            self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, chunks, [self.materials[k].name for k in free])
             b = self.bound
             self._kr = rigid_mod.build(b.counts, b.boundary, bool(self._static_geoms), self.private_grid)
 
