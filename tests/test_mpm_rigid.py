@@ -200,3 +200,25 @@ def test_rigid_ball_on_jelly_comes_to_rest_at_the_depth_its_weight_predicts():
     print(f"ball on jelly: depth {1e3 * out[0]:.1f} mm at 0.7 s, {1e3 * out[1]:.1f} mm at 1 s, Hertz {1e3 * hertz:.1f} mm")
     assert out[1] == pytest.approx(hertz, rel=0.3), (out, hertz)
     assert abs(out[1] - out[0]) < 0.05 * hertz, out  # at rest: under 1.3 mm in 0.3 s
+
+
+def test_only_fixed_rigid_instances_give_the_kernel_full_size_rigid_grids():
+    """A scene whose rigid instances are all fixed (static geometry) still compiles the kernel's
+    rigid grid passes (the kernel key is per material), so the rigid grids must span the grid:
+    with 1-element grids the passes wrote out of bounds (a segfault once the sums were laid out
+    per column)."""
+    s = 1 / 64
+    h = 0.125
+    xf = box([0.30, 0.30, h], [0.70, 0.70, h + 0.06], s)          # fixed slab on the ground
+    xj = box([0.42, 0.42, h + 0.065], [0.58, 0.58, h + 0.15], s)  # jelly resting on it
+    x = np.r_[xf, xj]
+    mat = np.r_[np.zeros(len(xf), int), np.ones(len(xj), int)]
+    dyn = Dynamics.from_config({"ground": {"height": h, "friction": 0.5, "surface": "separate"}})
+    sol = MPMSolver([STONE.with_(name="slab", fixed=True, friction=0.5), JELLY], n_grid=32, dynamics=dyn,
+                    backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), mat)
+    assert sol.rigid is None and sol.roles() == ["fixed", "deformable"]
+    assert sol.grid_r.shape[1:] == (32, 32, 32)
+    for _ in range(40):
+        sol.substep(2e-4)
+    assert np.isfinite(sol.get_state()["x"]).all()

@@ -48,7 +48,7 @@ from . import colliders
 from . import rigid as rigid_mod
 from .colliders import StaticGeometry
 from .dynamics import BoundDynamics, Dynamics
-from .materials import Material
+from .materials import RIGID_KEY, Material
 
 MAX_CHUNKS = 16  # CPU: at most this many private grids
 AFFINE_ITERATIONS = 16  # APIC round trips that set the initial C (the error falls ~10x per 4; 1e-4 after 16)
@@ -253,10 +253,13 @@ class MPMSolver:
         self._mbody = _ndarray_from(mbody, ti.i32)
         nb = max(len(free), 1)
         G, T = self.n_grid, self.n_chunks
-        self.grid_r = ti.ndarray(ti.i32, (T, G, G, G) if free else (1, 1, 1, 1))
-        self._gpart = ti.ndarray(ti.f64, (G * G + G if free else 1, nb, K.N_GSUM))  # per column, slab, body: grid sums
-        self.grid_rm = ti.ndarray(ti.f32, (T, G, G, G) if free else (1, 1, 1, 1))  # rigid mass per node
-        self.grid_rv = ti.ndarray(K.vec3, (T, G, G, G) if free else (1, 1, 1, 1))  # rigid momentum, velocity
+        # the kernels carry the rigid grid passes whenever a material is rigid (fixed ones
+        # included: the kernel key is per material), so the grids are full-size then
+        grids = bool(free) or RIGID_KEY in self.combos
+        self.grid_r = ti.ndarray(ti.i32, (T, G, G, G) if grids else (1, 1, 1, 1))
+        self._gpart = ti.ndarray(ti.f64, (G * G + G if grids else 1, nb, K.N_GSUM))  # per column, slab, body: grid sums
+        self.grid_rm = ti.ndarray(ti.f32, (T, G, G, G) if grids else (1, 1, 1, 1))  # rigid mass per node
+        self.grid_rv = ti.ndarray(K.vec3, (T, G, G, G) if grids else (1, 1, 1, 1))  # rigid momentum, velocity
         gbody = np.zeros((nb, 10))  # per body: centre, V, omega of the covered nodes; covering mass
         gbody[: len(free), 9] = [colliders.COVER * self.materials[k].density * self.dx ** 3 for k in free]
         self._gbody = _ndarray_from(gbody, ti.f64)
@@ -578,7 +581,7 @@ class MPMSolver:
         per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1 + 1)
         backup = 4 * (3 + 3 + 9 + 9 + 9 + 1) * P if self._backup is not None else 0
         sort = self._sorter.nbytes() if self._sorter is not None else 0
-        owner = 20 * self.n_chunks * G ** 3 if self.rigid is not None else 0  # grid_r, grid_rm, grid_rv
+        owner = 20 * self.n_chunks * G ** 3 if RIGID_KEY in self.combos else 0  # grid_r, grid_rm, grid_rv
         return per_particle * P + 16 * self.n_chunks * G ** 3 + owner + backup + sort
 
     # ------------------------------------------------------------------ helpers
