@@ -157,6 +157,50 @@ def test_atomic_grid_mode_matches_private_grids():
         assert np.allclose(runs[0][k], runs[1][k], atol=1e-3, rtol=1e-3), k
 
 
+def test_node_box_follows_the_particles_and_leaves_no_stale_mass():
+    """The CPU kernel's node loops run over the box of nodes the particles reach: it moves with
+    a flying block, is tight, and the nodes it leaves behind are cleared (the whole grid's mass
+    is the particles' mass); a soft block on a free rigid one agrees with the full-grid
+    (atomic, CUDA's scheme) transfer."""
+    x, vol = block([0.2, 0.4, 0.4], [0.3, 0.5, 0.48], 1 / 64, seed=4)
+    s = MPMSolver([JELLY], n_grid=32, dynamics=Dynamics.free(gravity=(0, 0, 0)), backend="cpu")
+    s.set_particles(x, vol, np.zeros(len(x), int))
+    s.set_state(x, np.tile([2.0, 0.0, 0.5], (len(x), 1)), np.zeros((len(x), 3, 3)),
+                np.broadcast_to(np.eye(3), (len(x), 3, 3)))
+    mass = p_mass(vol, JELLY.density).sum()
+    G = s.n_grid
+    for _ in range(4):
+        for _ in range(49):
+            s.substep(1e-3)
+        xb = s.get_state()["x"] / s.L  # positions before the last substep (domain units)
+        s.substep(1e-3)
+        base = np.clip(np.floor(xb * G - 0.5).astype(int), 0, G - 3)
+        box = s._box.to_numpy()[0]
+        assert list(box) == list(base.min(0)) + list(base.max(0) + 3)
+        assert box[3] - box[0] < G // 2  # far smaller than the grid
+        gm = s.grid_m.to_numpy()  # [T, G, G, G]: chunk 0 holds the summed grid
+        assert abs(gm[0].sum() - mass) < 1e-4 * mass, (gm[0].sum(), mass)
+        inside = np.zeros((G, G, G), bool)
+        inside[box[0]:box[3], box[1]:box[4], box[2]:box[5]] = True
+        assert not gm[:, ~inside].any()
+    assert s.get_state()["x"][:, 0].min() > 0.6  # it crossed the grid
+    from physgs_steps.mpm import preset
+    xr, vr = block([0.4, 0.4, 0.1], [0.55, 0.55, 0.2], 1 / 64, seed=5)
+    xs, vs = block([0.42, 0.42, 0.23], [0.53, 0.53, 0.3], 1 / 64, seed=6)
+    xx, vv = np.r_[xr, xs], np.r_[vr, vs]
+    mat = np.r_[np.zeros(len(xr), int), np.ones(len(xs), int)]
+    runs = []
+    for mode in ("private", "atomic"):
+        dyn = Dynamics.from_config({"ground": {"height": 0.1, "friction": 0.5, "surface": "separate"}})
+        s = MPMSolver([preset("stone", rigid=True), JELLY], n_grid=32, dynamics=dyn, backend="cpu", grid_mode=mode)
+        s.set_particles(xx, vv, mat)
+        for _ in range(150):
+            s.substep(5e-4)
+        runs.append(s.get_state())
+    assert np.abs(runs[1]["x"] - xx).max() > 0.01  # the jelly fell onto the stone
+    assert np.allclose(runs[0]["x"], runs[1]["x"], atol=1e-4), np.abs(runs[0]["x"] - runs[1]["x"]).max()
+
+
 def test_state_round_trip_and_input_errors():
     x, vol = block([0.4, 0.4, 0.4], [0.5, 0.5, 0.5], 1 / 48)
     s = MPMSolver([JELLY], n_grid=32, backend="cpu")

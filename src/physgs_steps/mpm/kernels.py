@@ -21,6 +21,8 @@ Arrays (SI units inside the solver: metres, m/s, s, Pa):
     mcombo [K] int        index of the material's (elasticity, plasticity) pair in Spec.combos
     dyn [R, 12]           dynamics table (dynamics.py)
     err [4] int           err[0] counts particles whose stencil left the grid (clamped)
+    box [3 + T, 6] int    node boxes (lo i, j, k, hi i, j, k; hi exclusive): rows current,
+                          previous, their union, then one per chunk (see "Node box")
 
 On the CPU the particles (sorted by cell) are split into T contiguous chunks, one per thread,
 and each chunk transfers into its own grid with plain adds; the grid update sums the T grids.
@@ -34,6 +36,17 @@ same stencil base in registers and writes the 27 nodes once per run (threads tak
 particles each, or, with ``run`` = p2g_sorted.CELL, the slots of one cell of the last device
 sort, ``cell_start`` [G^3 + 1]; the CPU's private-grid chunks likewise).  ``cell_start`` is
 read only in that case.
+
+Node box.  On the CPU the grid passes (clear, update, rigid coupling, boundaries) run only over
+the box of nodes this substep's particles reach (their stencils' bases, min to max + 3),
+computed per chunk at the start of the substep; the clear runs over the union with the last
+substep's box, so every node outside the current box is zero (the boundary rules' mirror
+samples read zeros there, as before).  A node outside the box has no mass, and the passes do
+nothing at a node without mass, so results are those of the full-grid loops.  Cost that
+follows the scene: a small object in a 32^3 grid used to pay for all 32,768 nodes every
+substep (benchmarks/bench_node_box.py).  ``solver._box_full`` marks the whole
+grid dirty after another kernel (``affine_transfer``) wrote it.  On CUDA the box is the grid
+(a per-substep reduction over a million particles would cost more than the grid loops).
 
 The stress of the current F is kept per particle (``tau``): the G2P pass computes it right
 after the return map from the SVD it already has, so a substep needs at most one SVD per
@@ -55,6 +68,7 @@ from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, MIRROR_MASS, TOUCH
 from .p2g_sorted import I1, M1, S1, V1, mat3, vec3  # noqa: E402,F401  (per-particle types, defined once there; K.mat3 is used by solver and rigid)
 
 S2 = ti.types.ndarray(dtype=ti.f32, ndim=2)
+I2 = ti.types.ndarray(dtype=ti.i32, ndim=2)
 V3 = ti.types.ndarray(dtype=vec3, ndim=3)
 V4 = ti.types.ndarray(dtype=vec3, ndim=4)
 S3 = ti.types.ndarray(dtype=ti.f32, ndim=3)
@@ -342,6 +356,23 @@ def build(spec: Spec) -> SimpleNamespace:
         return base, fx, w
 
     @ti.func
+    def _box_lo_n(box: ti.template(), r):
+        """Row r of the node box (box.py): its low corner and its extents."""
+        lo = ti.Vector([box[r, 0], box[r, 1], box[r, 2]])
+        return lo, ti.max(ti.Vector([box[r, 3], box[r, 4], box[r, 5]]) - lo, 0)
+
+    @ti.func
+    def _box_node(box: ti.template(), r, q):
+        """Node q (row-major, z fastest) of the node box in row r."""
+        lo, n = _box_lo_n(box, r)
+        return ti.Vector([lo[0] + q // (n[1] * n[2]), lo[1] + (q // n[2]) % n[1], lo[2] + q % n[2]])
+
+    @ti.func
+    def _box_count(box: ti.template(), r):
+        _, n = _box_lo_n(box, r)
+        return n[0] * n[1] * n[2]
+
+    @ti.func
     def _body_field(b, I, dx, gbody: ti.template()):
         """The grid velocity field of rigid body b at node I: V + omega x (x_I - c) (f32)."""
         c0 = ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
@@ -512,7 +543,7 @@ def build(spec: Spec) -> SimpleNamespace:
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
                 grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
-                mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, dt: ti.f32,
+                mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32,
                 t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1):
         # the rigid bodies' grid projection (1-element when no instance is rigid): grid_r
         # [T,G,G,G] i32 owner (1 + body; + covered, - fringe), grid_rm [T,G,G,G] and grid_rv
@@ -524,14 +555,46 @@ def build(spec: Spec) -> SimpleNamespace:
         G = grid_m.shape[1]
         L = dx * ti.cast(G, ti.f32)
         P = x.shape[0]
-        for I in ti.grouped(grid_m):
-            grid_v[I] = ti.Vector.zero(ti.f32, 3)
-            grid_m[I] = 0.0
-            grid_c[I] = 0.0
+        # node box (box.py): row 0 the nodes this substep's particles reach (every node loop
+        # below runs over it), row 1 last substep's, row 2 their union (cleared); CUDA: the grid
+        if ti.static(private_grid):
+            for c in range(n_chunks):  # per chunk of particles, rows 3 + c
+                lo = ti.Vector([G, G, G])
+                hi = ti.Vector([-1, -1, -1])
+                for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
+                    base = ti.min(ti.max(ti.cast(ti.floor(x[p] * inv_dx - 0.5), ti.i32), 0), G - 3)
+                    lo = ti.min(lo, base)
+                    hi = ti.max(hi, base)
+                for a in ti.static(range(3)):
+                    box[3 + c, a] = lo[a]
+                    box[3 + c, 3 + a] = hi[a] + 3
+        ti.loop_config(serialize=True)
+        for a in range(3):
+            box[1, a] = box[0, a]
+            box[1, 3 + a] = box[0, 3 + a]
+            lo = 0
+            hi = G
+            if ti.static(private_grid):
+                lo = G
+                hi = 0
+                for c in range(n_chunks):
+                    lo = ti.min(lo, box[3 + c, a])
+                    hi = ti.max(hi, box[3 + c, 3 + a])
+                hi = ti.max(hi, lo)
+            box[0, a] = lo
+            box[0, 3 + a] = hi
+            box[2, a] = ti.min(lo, box[1, a])
+            box[2, 3 + a] = ti.max(hi, box[1, 3 + a])
+        for q in range(n_chunks * _box_count(box, 2)):
+            c = q % n_chunks
+            I = _box_node(box, 2, q // n_chunks)
+            grid_v[c, I[0], I[1], I[2]] = ti.Vector.zero(ti.f32, 3)
+            grid_m[c, I[0], I[1], I[2]] = 0.0
+            grid_c[c, I[0], I[1], I[2]] = 0.0
             if ti.static(rigid_cid >= 0):
-                grid_r[I] = 0
-                grid_rm[I] = 0.0
-                grid_rv[I] = ti.Vector.zero(ti.f32, 3)
+                grid_r[c, I[0], I[1], I[2]] = 0
+                grid_rm[c, I[0], I[1], I[2]] = 0.0
+                grid_rv[c, I[0], I[1], I[2]] = ti.Vector.zero(ti.f32, 3)
         # P2G
         if ti.static(coarsened and private_grid):
             for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
@@ -560,7 +623,9 @@ def build(spec: Spec) -> SimpleNamespace:
                 _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                               grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
         # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
-        for i, j, k in ti.ndrange(G, G, G):
+        for q in range(_box_count(box, 0)):
+            I0 = _box_node(box, 0, q)
+            i, j, k = I0[0], I0[1], I0[2]
             m = grid_m[0, i, j, k]
             mom = grid_v[0, i, j, k]
             touch = grid_c[0, i, j, k]
@@ -603,19 +668,25 @@ def build(spec: Spec) -> SimpleNamespace:
             # fringe; covered nodes then move with its rigid motion, fringe nodes keep the soft
             # material's own velocity (the rigid particles read the body's field there)
             B = gbody.shape[0]
-            for i, j, k in ti.ndrange(G, G, G):
+            for q in range(_box_count(box, 0)):
+                I0 = _box_node(box, 0, q)
+                i, j, k = I0[0], I0[1], I0[2]
                 o = grid_r[0, i, j, k]
                 if o > 0:
                     if grid_rm[0, i, j, k] < gbody[o - 1, 9]:
                         grid_r[0, i, j, k] = -o
             # sums in a fixed order (reproducible), parallel enough for a GPU: per (x, y) column
             # over z into gpart[i G + j], then per x slab over y into gpart[G^2 + i], then over x
-            for i, j in ti.ndrange(G, G):
+            # (over the node box: outside it no node has mass)
+            for qc in range(_box_count(box, 0) // ti.max(box[0, 5] - box[0, 2], 1)):
+                lo, n = _box_lo_n(box, 0)
+                i = lo[0] + qc // n[1]
+                j = lo[1] + qc % n[1]
                 cix = i * G + j
                 for b in range(B):
                     for q in ti.static(range(N_GSUM)):
                         gpart[cix, b, q] = 0.0
-                for k in range(G):
+                for k in range(lo[2], lo[2] + n[2]):
                     o = grid_r[0, i, j, k]
                     m = ti.cast(grid_m[0, i, j, k], ti.f64)
                     vn = ti.cast(grid_v[0, i, j, k], ti.f64)
@@ -631,17 +702,17 @@ def build(spec: Spec) -> SimpleNamespace:
                                m * xn[0] * xn[1], m * xn[0] * xn[2], m * xn[1] * xn[2]]
                         for q in ti.static(range(N_GSUM)):
                             gpart[cix, b, q] += row[q]
-            for i in range(G):
+            for i in range(box[0, 0], box[0, 3]):
                 for b in range(B):
                     for q in ti.static(range(N_GSUM)):
                         acc_s = ti.cast(0.0, ti.f64)
-                        for j in range(G):
+                        for j in range(box[0, 1], box[0, 4]):
                             acc_s += gpart[i * G + j, b, q]
                         gpart[G * G + i, b, q] = acc_s
             ti.loop_config(serialize=True)
             for b in range(B):
                 acc = ti.Vector.zero(ti.f64, N_GSUM)
-                for i in range(G):
+                for i in range(box[0, 0], box[0, 3]):
                     for q in ti.static(range(N_GSUM)):
                         acc[q] += gpart[G * G + i, b, q]
                 c0 = ti.Vector.zero(ti.f64, 3)
@@ -661,7 +732,9 @@ def build(spec: Spec) -> SimpleNamespace:
                     gbody[b, q] = c0[q]
                     gbody[b, 3 + q] = V[q]
                     gbody[b, 6 + q] = w[q]
-            for i, j, k in ti.ndrange(G, G, G):
+            for q in range(_box_count(box, 0)):
+                I0 = _box_node(box, 0, q)
+                i, j, k = I0[0], I0[1], I0[2]
                 o = grid_r[0, i, j, k]
                 m = grid_m[0, i, j, k]
                 if o != 0 and m > 0.0:
@@ -675,7 +748,9 @@ def build(spec: Spec) -> SimpleNamespace:
                             out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
                         grid_v[0, i, j, k] = out
         # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
-        for i, j, k in ti.ndrange(G, G, G):
+        for q in range(_box_count(box, 0)):
+            I0 = _box_node(box, 0, q)
+            i, j, k = I0[0], I0[1], I0[2]
             gv = grid_v[0, i, j, k]
             if grid_m[0, i, j, k] > 0.0:
                 gv0 = gv  # before any boundary (front-band friction reads its own push on it)

@@ -276,6 +276,7 @@ class MPMSolver:
         self._require_particles()
         for _ in range(iterations):
             K.affine_transfer(self.x, self.v, self.C, self._p_mass, self.grid_v, self.grid_m, float(self.dx))
+        self._box_full()  # it wrote the whole grid
 
     def set_materials(self, materials: Sequence[Material]) -> None:
         """Replace material parameters (same models per index) without recompiling; recomputes
@@ -325,8 +326,17 @@ class MPMSolver:
         self.grid_rv = ti.ndarray(K.vec3, (1, 1, 1, 1))
         self._err = ti.ndarray(ti.i32, 4)
         self._err.from_numpy(np.zeros(4, np.int32))
+        # the node box of the substep kernel (kernels.py): rows cur, previous, union, per chunk
+        self._box = ti.ndarray(ti.i32, (3 + T, 6))
+        self._box_full()
         self._stats = ti.ndarray(ti.f32, (len(self.materials), len(STAT_COLUMNS)))
         self._backup = None
+
+    def _box_full(self) -> None:
+        """Mark the whole grid as last substep's node box, so the next substep clears all of it
+        (after the grids were made or written by another kernel)."""
+        G = self.n_grid
+        self._box.from_numpy(np.tile(np.array([0, 0, 0, G, G, G], np.int32), (self._box.shape[0], 1)))
 
     def _sort_order(self, x: np.ndarray) -> np.ndarray:
         """[P] permutation sorting particles by grid cell (row-major in (x, y, z))."""
@@ -471,7 +481,7 @@ class MPMSolver:
         self._k.substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
                         self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_r, self.grid_rm, self.grid_rv, self._mbody,
                         self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
-                        self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, float(dt), float(self.time),
+                        self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
                         float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]),
                         float(b.gravity[2]), float(damp), self._cell_start)
         if self.rigid is not None:
