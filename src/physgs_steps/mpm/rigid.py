@@ -42,7 +42,11 @@ Per substep, after the MPM kernel:
 2. **contact** with the colliders (colliders.py: ground, surface colliders, domain walls,
    level sets of static geometry) and cuboids: every particle closer than ``CONTACT_BAND dx``
    to an obstacle (or inside an active cuboid) is a contact point (normal n, depth phi,
-   collider velocity v_c, kind, friction).  Projected Gauss-Seidel over the contacts,
+   collider velocity v_c, kind, friction); of the points of one body, obstacle and grid cell
+   only the deepest is kept (looked up among the chunk's last ``CT_MERGE_BACK`` rows: the
+   particles are stored sorted by cell), so a face resting on the ground has one contact per
+   cell, not one per particle (a block of 600 particles on the ground: 102 contacts instead of
+   600).  The support polygon is that of the cells, the solve is several times shorter.  Projected Gauss-Seidel over the contacts,
    ``PGS_ITERS`` sweeps, accumulated impulses: the relative normal velocity at a contact must
    not bring it past the surface within the substep (``u_n >= -max(phi, 0) / dt``,
    speculative contact), the normal impulse is >= 0 (slip surfaces: bilateral once touching),
@@ -72,8 +76,9 @@ from . import kernels as K
 CONTACT_BAND = 1.0   # cells: particles closer than this to an obstacle are contact candidates
 PGS_ITERS = 12
 POSITION_ITERS = 4
-CT_WIDTH = 14        # contact row: body, r(3), n(3), phi, v_c(3), kind, friction, region
+CT_WIDTH = 16        # contact row: body, r(3), n(3), phi, v_c(3), kind, friction, region, slot, cell
 CT_PER_PARTICLE = 3  # contact capacity per rigid particle
+CT_MERGE_BACK = 16   # rows looked back for a contact of the same body, obstacle and cell
 
 vec3d = ti.types.vector(3, ti.f64)
 mat3d = ti.types.matrix(3, 3, ti.f64)
@@ -159,6 +164,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
         Pr = rb_p.shape[0]
         cap = ct.shape[1]
         L = dx * ti.cast(G, ti.f32)
+        inv_dx = 1.0 / dx
         for c in range(T):
             for b in range(B):
                 for q in ti.static(range(6)):
@@ -177,6 +183,8 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                     part[c, b, q] += m * vp[q]
                     part[c, b, 3 + q] += ang[q]
                 xp = x[p]
+                ci = ti.min(ti.max(ti.cast(ti.floor(xp * inv_dx), ti.i32), 0), G - 1)
+                cell = ti.cast((ci[0] * G + ci[1]) * G + ci[2], ti.f32)  # exact in f32 up to G = 256
                 for s in range(n_slots):
                     active, phi, n, vc, kind, fric = col.slot(s, xp, ti.Vector([0, 0, 0]), False, t, dx, L, wall,
                                                               dyn, lvl_phi, lvl_id, lvl_rows)
@@ -184,13 +192,29 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                     near = phi < CONTACT_BAND * dx
                     if region == 1:
                         near = phi < 0.0
-                    if active == 1 and near and nc < cap:
-                        rf = ti.cast(r, ti.f32)
-                        row = [ti.cast(b, ti.f32), rf[0], rf[1], rf[2], n[0], n[1], n[2], phi, vc[0], vc[1], vc[2],
-                               kind, fric, ti.cast(region, ti.f32)]
-                        for q in ti.static(range(CT_WIDTH)):
-                            ct[c, nc, q] = row[q]
-                        nc += 1
+                    if active == 1 and near:
+                        # one contact per body, obstacle and grid cell: its deepest particle
+                        # (the particles are stored sorted by cell, so a cell's rows are among
+                        # the last few; module docs "contact")
+                        at = nc
+                        for back in range(1, CT_MERGE_BACK + 1):
+                            k = nc - back
+                            if k >= 0 and at == nc:
+                                if ct[c, k, 15] == cell and ct[c, k, 14] == ti.cast(s, ti.f32) and \
+                                        ct[c, k, 0] == ti.cast(b, ti.f32):
+                                    at = k
+                        if at < nc and phi >= ct[c, at, 7]:
+                            at = -1  # a deeper contact of this cell is already there
+                        if at == nc and nc >= cap:
+                            at = -1
+                        if at >= 0:
+                            rf = ti.cast(r, ti.f32)
+                            row = [ti.cast(b, ti.f32), rf[0], rf[1], rf[2], n[0], n[1], n[2], phi, vc[0], vc[1],
+                                   vc[2], kind, fric, ti.cast(region, ti.f32), ti.cast(s, ti.f32), cell]
+                            for q in ti.static(range(CT_WIDTH)):
+                                ct[c, at, q] = row[q]
+                            if at == nc:
+                                nc += 1
             ct_count[c] = nc
 
     @ti.kernel
