@@ -10,7 +10,7 @@ body walking every contact candidate for 12 + 4 iterations) took 18.0 ms of it (
 other kernel together 0.6 ms.  On one H200, base 56b40c2 (one contact per body, obstacle and 2-cell
 bin) against the parallel contact solve (rigid.py "Parallel contact solve") in the same call:
 4.79 -> 2.51 ms a substep, the contact solve 3.017 ms (``advance``) -> 0.424 ms (``advance_jacobi``,
-44 launched tasks) of device time a substep.
+44 launched tasks) of device time a substep (24 tasks since, not yet timed on a GPU).
 The per-kernel summary adds each kernel's offloaded tasks together.
 """
 import os, re, sys, time

@@ -97,8 +97,9 @@ parallel solve on the CPU in tests):
 Measured on one H200 (``python benchmarks/bench_rigid_substep.py cuda 64 300``: grid 64, 11,552
 rigid + 31,616 soft particles, 180 chunks), base 56b40c2 against this solve in the same call:
 4.79 -> 2.51 ms a substep (wall clock), ``advance`` 3.017 ms -> ``advance_jacobi`` 0.424 ms of
-device time a substep (its 44 launched tasks together: a few microseconds each, the solve itself
-no longer costs; every other kernel 0.59 ms).  CPU (serial) against CUDA (Jacobi), grid 32, 400
+device time a substep (its 44 launched tasks together, about 10 us each: launches, not the
+solve, cost now; every other kernel 0.59 ms).  Since then its loop bounds are compile-time
+constants and it launches 24 tasks (counted with the CPU profiler); not yet timed on a GPU.  CPU (serial) against CUDA (Jacobi), grid 32, 400
 substeps of 2e-4 s (.devcarry/rigid_parallel/cmp_cuda.py, not in the repository): a block standing
 on the ground beside a soft block agrees to 1.1e-6 in x, 3e-5 in v; a block landing and sliding
 to rest on a raised ground (friction 0.5) agrees to 3.3e-4 in x, but 400 substeps after release
@@ -418,11 +419,14 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
     @ti.kernel
     def advance_jacobi(part: S3d, ct: K.S3, ct_count: K.I1, acc: K.S3, body_c: V1d, body_R: M1d, body_V: V1d,
                        body_w: V1d, body_M: S1d, body_I0inv: M1d, work: S2d, jac: S3d, depth: S2d, win: I2d,
-                       dt: ti.f64):
+                       dt: ti.f64, n_rows: ti.template(), B: ti.template()):
         """:func:`advance` in parallel over the contacts (module docs "Parallel contact solve"):
-        Jacobi iterations with mass splitting, the position passes as a parallel minimum."""
+        Jacobi iterations with mass splitting, the position passes as a parallel minimum.
+        n_rows = T * cap (the contact table's rows) and B (the bodies) are compile-time
+        constants (one compile per solver layout): with a bound read at run time Taichi (without
+        advanced_optimization, backend.py) launches a serial task to compute it before each of
+        the loops, 44 tasks instead of 24."""
         T = part.shape[0]
-        B = part.shape[1]
         cap = ct.shape[1]
         for b in range(B):  # the chunks' sums (in chunk order), the scratch rows zeroed
             P = ti.Vector.zero(ti.f64, 3)
@@ -450,7 +454,9 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
         for it in ti.static(range(JACOBI_ITERS)):
             # every contact from the same body velocity (the start plus the earlier iterations'
             # sums, added in iteration order), its increments summed per body with atomics
-            for c, j in ti.ndrange(T, cap):
+            for i in range(n_rows):
+                c = i // cap
+                j = i - c * cap
                 if j < ct_count[c]:
                     b = ti.cast(ct[c, j, 0], ti.i32)
                     M = body_M[b]
@@ -548,7 +554,9 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
         for it in ti.static(range(POSITION_ITERS)):
             # the deepest contact per body: its depth by an atomic minimum, then the first row
             # (in the serial solve's order) of that depth by an atomic minimum of the row index
-            for c, j in ti.ndrange(T, cap):
+            for i in range(n_rows):
+                c = i // cap
+                j = i - c * cap
                 if j < ct_count[c] and ct[c, j, 13] < 0.5:
                     b = ti.cast(ct[c, j, 0], ti.i32)
                     shift = _shift(ct, work, win, b, cap, it)
@@ -563,15 +571,16 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                     depth[c, j] = d
                     if d < 0.0:
                         ti.atomic_min(work[b, _W_WORST + it], d)
-            for c, j in ti.ndrange(T, cap):
+            for i in range(n_rows):
+                c = i // cap
+                j = i - c * cap
                 if j < ct_count[c] and ct[c, j, 13] < 0.5:
                     b = ti.cast(ct[c, j, 0], ti.i32)
                     d = depth[c, j]
                     if d < 0.0 and d == work[b, _W_WORST + it]:
-                        ti.atomic_min(win[b, it], c * cap + j)
+                        ti.atomic_min(win[b, it], i)
         for b in range(B):
-            cap_ = ct.shape[1]
-            shift = _shift(ct, work, win, b, cap_, POSITION_ITERS)
+            shift = _shift(ct, work, win, b, ct.shape[1], POSITION_ITERS)
             R_new = _work_R(work, b)
             body_c[b] = ti.Vector([work[b, _W_C], work[b, _W_C + 1], work[b, _W_C + 2]], dt=ti.f64) + shift
             body_R[b] = R_new
@@ -661,7 +670,8 @@ class RigidBodies:
         args = (self.part, self.ct, self.ct_count, self.acc, self.body_c, self.body_R, self.body_V, self.body_w,
                 self.body_M, self.body_I0inv)
         if self.solve == "jacobi":
-            kr.advance_jacobi(*args, self.work, self.jac, self.depth, self.win, float(dt))
+            T, cap = self.ct.shape[0], self.ct.shape[1]
+            kr.advance_jacobi(*args, self.work, self.jac, self.depth, self.win, float(dt), int(T * cap), int(self.n_bodies))
         else:
             kr.advance(*args, float(dt))
 
