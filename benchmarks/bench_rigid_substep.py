@@ -7,9 +7,14 @@ Prints the milliseconds per substep, particle-substeps/s and, on CUDA, the kerne
 Measured on one H100 (commit 49b9f22, grid 64, 11,552 rigid + 31,616 soft particles): 20.9 ms a
 substep, 2.1e6 particle-substeps/s; the rigid contact solve (rigid.py ``advance``, one thread per
 body walking every contact candidate for 12 + 4 iterations) took 18.0 ms of it (96.7 %), every
-other kernel together 0.6 ms.
+other kernel together 0.6 ms.  On one H200, base 56b40c2 (one contact per body, obstacle and 2-cell
+bin) against the parallel contact solve (rigid.py "Parallel contact solve") in the same call:
+4.79 -> 2.51 ms a substep, the contact solve 3.017 ms (``advance``) -> 0.424 ms (``advance_jacobi``,
+44 launched tasks) of device time a substep (24 tasks since, not yet timed on a GPU).
+The per-kernel summary adds each kernel's offloaded tasks together.
 """
-import os, sys, time
+import os, re, sys, time
+from collections import defaultdict
 os.environ["PHYSGS_TI_PROFILER"] = "1"
 import numpy as np
 import taichi as ti
@@ -44,4 +49,17 @@ for _ in range(n):
 ti.sync()
 el = time.perf_counter() - t
 print(f"{n} substeps in {el:.3f} s: {1e3 * el / n:.2f} ms each, {len(x) * n / el:.3g} particle-substeps/s")
+# per kernel (its offloaded tasks together): device milliseconds a substep
+from taichi.profiler.kernel_profiler import get_default_kernel_profiler
+prof = get_default_kernel_profiler()
+prof._update_records()
+per = defaultdict(float)
+tasks = defaultdict(set)
+for rec in prof._traced_records:
+    name = re.sub(r"_c\d+_\d+(_kernel_\d+_.*)?$", "", rec.name)
+    per[name] += rec.kernel_time
+    tasks[name].add(rec.name)
+print(f"kernel time {sum(per.values()) / n:.3f} ms a substep; per kernel (ms a substep, tasks):")
+for name, t in sorted(per.items(), key=lambda kv: -kv[1]):
+    print(f"  {name:<24} {t / n:8.4f} ms  {len(tasks[name]):3d}")
 ti.profiler.print_kernel_profiler_info("count")

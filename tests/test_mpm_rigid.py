@@ -8,6 +8,7 @@ import pytest
 from physgs_steps.errors import ConfigError, InputError
 from physgs_steps.mpm import Dynamics, Material, MPMSolver, StaticGeometry
 from physgs_steps.mpm import colliders
+from physgs_steps.mpm import rigid as rigid_mod
 
 STONE = Material("fixed_corotated", "identity", E=2.0e7, nu=0.25, density=2600.0, name="stone", rigid=True)
 JELLY = Material("fixed_corotated", "identity", E=5.0e4, nu=0.3, density=1000.0, name="jelly")
@@ -16,6 +17,14 @@ JELLY = Material("fixed_corotated", "identity", E=5.0e4, nu=0.3, density=1000.0,
 def box(lo, hi, s):
     axes = [np.arange(a + s / 2, b - 1e-9, s) for a, b in zip(lo, hi)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+@pytest.fixture(params=["serial", "jacobi"])
+def solve(request, monkeypatch):
+    """Run a test with each contact solve on the CPU: the serial Gauss-Seidel (the CPU's own)
+    and the parallel Jacobi one that CUDA uses (rigid.py "Parallel contact solve")."""
+    monkeypatch.setattr(rigid_mod, "CONTACT_SOLVE", request.param)
+    return request.param
 
 
 def momenta(st, mass, sel, c=None):
@@ -27,7 +36,7 @@ def momenta(st, mass, sel, c=None):
     return (m[:, None] * v).sum(0), (m[:, None] * np.cross(x - c, v)).sum(0)
 
 
-def test_head_on_collision_is_perfectly_inelastic():
+def test_head_on_collision_is_perfectly_inelastic(solve):
     """Two free rigid blocks in zero gravity collide head-on: MPM grid contact is sticky, so
     they leave together at the common velocity (m1 v1 + m2 v2) / (m1 + m2); momentum is exact."""
     s = 1 / 64
@@ -93,7 +102,7 @@ def test_spinning_free_body_keeps_its_angular_momentum_and_shape():
     assert np.linalg.norm(Lp - L1) < 1e-3 * np.linalg.norm(L1)
 
 
-def test_rigid_body_rests_on_the_ground_and_a_fixed_body_holds_a_soft_one():
+def test_rigid_body_rests_on_the_ground_and_a_fixed_body_holds_a_soft_one(solve):
     """A free rigid block dropped on the ground comes to rest with its lowest particles on the
     plane (contact per body: it does not creep into it); a fixed rigid slab (static geometry,
     not simulated) holds a jelly block dropped on it and never moves."""
@@ -108,6 +117,7 @@ def test_rigid_body_rests_on_the_ground_and_a_fixed_body_holds_a_soft_one():
     dyn = Dynamics.from_config({"ground": {"height": h, "friction": 0.5, "surface": "separate"}, "damping": 2.0})
     sol = MPMSolver([STONE, slab, JELLY], n_grid=32, dynamics=dyn, backend="cpu")
     sol.set_particles(x, np.full(len(x), s ** 3), mat)
+    assert sol.rigid.solve == solve
     assert sol.n_particles == len(xr) + len(xj) and sol.roles() == ["rigid", "fixed", "deformable"]
     assert sol.wave_speeds()[0] == 0.0 and sol.wave_speeds()[1] == 0.0
     dt = 0.4 * (1 / 32) / JELLY.wave_speed
@@ -123,6 +133,29 @@ def test_rigid_body_rests_on_the_ground_and_a_fixed_body_holds_a_soft_one():
     assert zj.min() > top - 0.3 * s          # the jelly rests on the slab, not in it
     assert zj.min() < top + 0.5 / 32         # and is held by it (fell the 1 cm gap)
     assert np.abs(st["v"][mat == 2]).max() < 0.05
+
+
+def test_sliding_block_decelerates_at_mu_g(solve):
+    """A flat rigid block sliding on a ground with Coulomb friction mu (the ground above the
+    domain wall, so it is the only obstacle) slows down at mu g once it has landed, with
+    either contact solve, and does not start to spin."""
+    s = 1 / 64
+    h, mu, v0 = 0.25, 0.4, 0.5
+    x = box([0.30, 0.40, h], [0.50, 0.60, h + 0.0625], s)
+    dyn = Dynamics.from_config({"ground": {"height": h, "friction": mu, "surface": "separate"}})
+    sol = MPMSolver([STONE], n_grid=32, dynamics=dyn, backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), np.zeros(len(x), int), velocity=np.tile([v0, 0.0, 0.0], (len(x), 1)))
+    assert sol.rigid.solve == solve
+    dt = 5e-4
+    V = []
+    for i in range(200):  # it lands (falls half a particle spacing) after ~0.04 s
+        sol.substep(dt)
+        if (i + 1) % 100 == 0:
+            V.append(sol.rigid.state()["V"][0])
+    decel = (V[0][0] - V[1][0]) / (100 * dt)
+    assert decel == pytest.approx(mu * 9.8, rel=0.03)
+    assert abs(V[1][1]) < 1e-3 and abs(V[1][2]) < 0.01
+    assert np.abs(sol.rigid.state()["omega"]).max() < 0.05
 
 
 def test_level_set_of_points_places_the_surface():

@@ -66,6 +66,52 @@ Per substep, after the MPM kernel:
 4. **scatter**: x_p = c + R r0_p, v_p = V + omega' x r_p, C_p = [omega']x, F_p = R (tau = 0):
    the particle state carries exactly the body's momentum and angular momentum.
 
+Parallel contact solve
+----------------------
+Steps 2-3 run as ``advance`` on the CPU: one thread per body, Gauss-Seidel in the contacts'
+storage order, so CPU runs stay bitwise reproducible.  On a GPU that single thread walking
+the contacts was latency-bound: 3.0 of a 5.1 ms substep on an H200 (bench_rigid_substep.py,
+grid 64).  There ``advance_jacobi`` solves the same contact problem in parallel over the
+contacts (:func:`contact_solve` picks by arch; ``CONTACT_SOLVE`` forces one, e.g. to run the
+parallel solve on the CPU in tests):
+
+* Jacobi iterations with mass splitting (``JACOBI_ITERS``): a body with n contact rows (counted
+  by ``reduce``) is split into n copies of mass M / n and inertia I / n, one per contact.  In an
+  iteration every contact computes its impulse increment from the same body velocity, with
+  its copy's mass (normal, then friction from its copy's velocity after the normal impulse,
+  or the full sticking impulse), and adds it and its angular impulse r x p to the body's sum
+  for that iteration with atomics; the copies' velocities averaged are the body's velocity
+  plus the sum over the true mass and inertia, which the next iteration starts from.  The
+  accumulated impulses are kept and clamped per contact as in the serial solve (normal
+  impulse >= 0 on separating surfaces, tangential impulse in the Coulomb cone of the
+  normal one).  With the split masses every contact's correction is 1/n of what it would be
+  alone, so the iterations cannot overshoot (mass splitting, Tonge et al. 2012).
+* The position passes as parallel minima: each pass writes every contact's depth (with the
+  earlier passes' translation), takes the body's deepest by an atomic minimum of the depth,
+  then the first row of that depth in the serial order by an atomic minimum of the row index,
+  so the pass picks the same contact as the serial one.
+* Each iteration and pass is one parallel loop of the one kernel (Taichi launches them in
+  order); the per-iteration sums are added in iteration order.  Atomic sums of floats make
+  GPU runs reproducible to rounding only.
+
+Measured on one H200 (``python benchmarks/bench_rigid_substep.py cuda 64 300``: grid 64, 11,552
+rigid + 31,616 soft particles, 180 chunks), base 56b40c2 against this solve in the same call:
+4.79 -> 2.51 ms a substep (wall clock), ``advance`` 3.017 ms -> ``advance_jacobi`` 0.424 ms of
+device time a substep (its 44 launched tasks together, about 10 us each: launches, not the
+solve, cost now; every other kernel 0.59 ms).  Since then its loop bounds are compile-time
+constants and it launches 24 tasks (counted with the CPU profiler); not yet timed on a GPU.  CPU (serial) against CUDA (Jacobi), grid 32, 400
+substeps of 2e-4 s (.devcarry/rigid_parallel/cmp_cuda.py, not in the repository): a block standing
+on the ground beside a soft block agrees to 1.1e-6 in x, 3e-5 in v; a block landing and sliding
+to rest on a raised ground (friction 0.5) agrees to 3.3e-4 in x, but 400 substeps after release
+the CUDA run was still rocking slightly (0.076 rad/s, v 0.018 off): the landing's transient
+differs, the rest state does not (tests/test_mpm_rigid.py, both solves).
+
+The two solves differ where the contact problem has several solutions: a face on the ground
+where the ground and the bottom domain wall coincide has two contacts per bin, and the serial
+sweep gives the whole load to the first (the wall, frictionless) while the Jacobi solve
+shares it equally, so friction acts there with half the load.  tests/test_mpm_rigid.py runs
+its cases with both solves on the CPU.
+
 Body state and sums are float64; on the CPU the reduction runs per chunk of particles (one per
 thread) in a fixed order, so runs stay bitwise reproducible.
 """
@@ -80,6 +126,8 @@ from . import kernels as K
 CONTACT_BAND = 1.0   # cells: particles closer than this to an obstacle are contact candidates
 PGS_ITERS = 12
 POSITION_ITERS = 4
+JACOBI_ITERS = 12    # iterations of the parallel solve (advance_jacobi)
+CONTACT_SOLVE = None  # "serial" | "jacobi" | None: serial on the CPU, jacobi elsewhere (contact_solve)
 CT_WIDTH = 16        # contact row: body, r(3), n(3), phi, v_c(3), kind, friction, region, slot, cell
 CT_PER_PARTICLE = 3  # contact capacity per rigid particle
 CT_MERGE_BACK = 32   # rows looked back for a contact of the same body, obstacle and bin
@@ -90,7 +138,14 @@ mat3d = ti.types.matrix(3, 3, ti.f64)
 V1d = ti.types.ndarray(dtype=vec3d, ndim=1)
 M1d = ti.types.ndarray(dtype=mat3d, ndim=1)
 S1d = ti.types.ndarray(dtype=ti.f64, ndim=1)
+S2d = ti.types.ndarray(dtype=ti.f64, ndim=2)
 S3d = ti.types.ndarray(dtype=ti.f64, ndim=3)
+I2d = ti.types.ndarray(dtype=ti.i32, ndim=2)
+
+# advance_jacobi's per-body scratch row (work [B, _W_WIDTH] f64)
+_W_V, _W_W, _W_N, _W_L, _W_C, _W_R, _W_WORST = 0, 3, 6, 7, 10, 13, 22
+_W_WIDTH = _W_WORST + POSITION_ITERS
+_NO_WIN = 2 ** 31 - 1  # no contact below the surface in that position pass
 
 
 @ti.func
@@ -123,6 +178,29 @@ def _orthonormal(R):
     return ti.Matrix.cols([a, b, c])
 
 
+@ti.func
+def _work_R(work: ti.template(), b):
+    """The new rotation kept in advance_jacobi's scratch row."""
+    R = ti.Matrix.zero(ti.f64, 3, 3)
+    for q in ti.static(range(9)):
+        R[q // 3, q % 3] = work[b, _W_R + q]
+    return R
+
+
+@ti.func
+def _shift(ct: ti.template(), work: ti.template(), win: ti.template(), b, cap, upto: ti.template()):
+    """The translation of body b by the first ``upto`` position passes (in pass order)."""
+    shift = ti.Vector.zero(ti.f64, 3)
+    for k in ti.static(range(upto)):
+        idx = win[b, k]
+        if idx != _NO_WIN:
+            c = idx // cap
+            j = idx % cap
+            n = ti.Vector([ct[c, j, 4], ct[c, j, 5], ct[c, j, 6]], dt=ti.f64)
+            shift -= work[b, _W_WORST + k] * n
+    return shift
+
+
 def body_setup(x: np.ndarray, mass: np.ndarray, dx: float) -> tuple:
     """Body-frame data of one rigid body from its particles (metres, kg): (centre [3],
     r0 [P, 3] offsets, I0 [3, 3] inertia including APIC's dx^2/2 per unit mass, M)."""
@@ -152,6 +230,18 @@ def reduce_chunks(arch: str, cpu_threads: int, n_particles: int) -> int:
     return int(max(1, min(GPU_MAX_CHUNKS, n_particles // GPU_PARTICLES_PER_CHUNK)))
 
 
+def contact_solve(arch: str) -> str:
+    """The contact solve of :func:`build` for an arch: ``CONTACT_SOLVE`` where set, else the
+    serial projected Gauss-Seidel (``advance``) on the CPU, whose fixed order keeps CPU runs
+    bitwise reproducible, and the parallel Jacobi solve (``advance_jacobi``) on a GPU, where
+    one thread walking the contacts was 83 % of a substep (module docs)."""
+    if CONTACT_SOLVE is not None:
+        if CONTACT_SOLVE not in ("serial", "jacobi"):
+            raise ValueError(f"rigid.CONTACT_SOLVE must be 'serial', 'jacobi' or None, not {CONTACT_SOLVE!r}")
+        return CONTACT_SOLVE
+    return "serial" if arch == "cpu" else "jacobi"
+
+
 @functools.lru_cache(maxsize=None)
 def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> SimpleNamespace:
     """The rigid-body kernels for the given collider layout (see kernels.Spec)."""
@@ -162,8 +252,8 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
     def reduce(x: K.V1, v: K.V1, C: K.M1, p_mass: K.S1, rb_p: K.I1, rb_b: K.I1, rb_r0: K.V1, body_R: M1d,
                part: S3d, ct: K.S3, ct_count: K.I1, dyn: K.S2, lvl_phi: K.S3, lvl_id: K.I3, lvl_rows: K.S2,
                t: ti.f32, dx: ti.f32, wall: ti.f32, G: ti.i32):
-        """Per chunk: momentum and angular momentum sums of each body (part [T, B, 6]) and the
-        contact candidates (ct [T, cap, CT_WIDTH], ct_count [T])."""
+        """Per chunk: momentum and angular momentum sums of each body and its number of contact
+        rows (part [T, B, 7]), and the contact candidates (ct [T, cap, CT_WIDTH], ct_count [T])."""
         T = part.shape[0]
         B = part.shape[1]
         Pr = rb_p.shape[0]
@@ -172,7 +262,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
         inv_dx = 1.0 / dx
         for c in range(T):
             for b in range(B):
-                for q in ti.static(range(6)):
+                for q in ti.static(range(7)):
                     part[c, b, q] = 0.0
             nc = 0
             for j in range(c * Pr // T, (c + 1) * Pr // T):
@@ -220,6 +310,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                                 ct[c, at, q] = row[q]
                             if at == nc:
                                 nc += 1
+                                part[c, b, 6] += 1.0  # the body's contact rows (mass splitting)
             ct_count[c] = nc
 
     @ti.kernel
@@ -326,6 +417,178 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
             body_w[b] = R_new @ body_I0inv[b] @ R_new.transpose() @ Lm
 
     @ti.kernel
+    def advance_jacobi(part: S3d, ct: K.S3, ct_count: K.I1, acc: K.S3, body_c: V1d, body_R: M1d, body_V: V1d,
+                       body_w: V1d, body_M: S1d, body_I0inv: M1d, work: S2d, jac: S3d, depth: S2d, win: I2d,
+                       dt: ti.f64, n_rows: ti.template(), B: ti.template()):
+        """:func:`advance` in parallel over the contacts (module docs "Parallel contact solve"):
+        Jacobi iterations with mass splitting, the position passes as a parallel minimum.
+        n_rows = T * cap (the contact table's rows) and B (the bodies) are compile-time
+        constants (one compile per solver layout): with a bound read at run time Taichi (without
+        advanced_optimization, backend.py) launches a serial task to compute it before each of
+        the loops, 44 tasks instead of 24."""
+        T = part.shape[0]
+        cap = ct.shape[1]
+        for b in range(B):  # the chunks' sums (in chunk order), the scratch rows zeroed
+            P = ti.Vector.zero(ti.f64, 3)
+            Lm = ti.Vector.zero(ti.f64, 3)
+            ncb = ti.cast(0.0, ti.f64)
+            for c in range(T):
+                for q in ti.static(range(3)):
+                    P[q] += part[c, b, q]
+                    Lm[q] += part[c, b, 3 + q]
+                ncb += part[c, b, 6]
+            R = body_R[b]
+            Iinv = R @ body_I0inv[b] @ R.transpose()
+            V = P / body_M[b]
+            w = Iinv @ Lm
+            for q in ti.static(range(3)):
+                work[b, _W_V + q] = V[q]
+                work[b, _W_W + q] = w[q]
+            work[b, _W_N] = ti.max(ncb, 1.0)
+            for k in ti.static(range(JACOBI_ITERS)):
+                for q in ti.static(range(6)):
+                    jac[b, k, q] = 0.0
+            for k in ti.static(range(POSITION_ITERS)):
+                work[b, _W_WORST + k] = 0.0
+                win[b, k] = _NO_WIN
+        for it in ti.static(range(JACOBI_ITERS)):
+            # every contact from the same body velocity (the start plus the earlier iterations'
+            # sums, added in iteration order), its increments summed per body with atomics
+            for i in range(n_rows):
+                c = i // cap
+                j = i - c * cap
+                if j < ct_count[c]:
+                    b = ti.cast(ct[c, j, 0], ti.i32)
+                    M = body_M[b]
+                    R = body_R[b]
+                    Iinv = R @ body_I0inv[b] @ R.transpose()
+                    dP = ti.Vector.zero(ti.f64, 3)
+                    dL = ti.Vector.zero(ti.f64, 3)
+                    for k in ti.static(range(it)):
+                        dP += ti.Vector([jac[b, k, 0], jac[b, k, 1], jac[b, k, 2]], dt=ti.f64)
+                        dL += ti.Vector([jac[b, k, 3], jac[b, k, 4], jac[b, k, 5]], dt=ti.f64)
+                    V = ti.Vector([work[b, _W_V], work[b, _W_V + 1], work[b, _W_V + 2]], dt=ti.f64) + dP / M
+                    w = ti.Vector([work[b, _W_W], work[b, _W_W + 1], work[b, _W_W + 2]], dt=ti.f64) + Iinv @ dL
+                    # mass splitting: this contact's share of the body, mass M / n, inertia I / n
+                    ns = work[b, _W_N]
+                    Ms = M / ns
+                    Is = Iinv * ns
+                    r = ti.Vector([ct[c, j, 1], ct[c, j, 2], ct[c, j, 3]], dt=ti.f64)
+                    n = ti.Vector([ct[c, j, 4], ct[c, j, 5], ct[c, j, 6]], dt=ti.f64)
+                    phi = ti.cast(ct[c, j, 7], ti.f64)
+                    vc = ti.Vector([ct[c, j, 8], ct[c, j, 9], ct[c, j, 10]], dt=ti.f64)
+                    kind = ct[c, j, 11]
+                    fric = ti.cast(ct[c, j, 12], ti.f64)
+                    region = ct[c, j, 13]
+                    u = V + w.cross(r) - vc
+                    imp = ti.Vector.zero(ti.f64, 3)  # this iteration's impulse at the contact
+                    if region > 0.5 or (kind < 0.5 and phi <= 0.0):
+                        Rx = _skew(r)
+                        Km = ti.Matrix.identity(ti.f64, 3) / Ms - Rx @ Is @ Rx
+                        imp = -(Km.inverse() @ u)
+                    else:
+                        un = u.dot(n)
+                        target = -ti.max(phi, 0.0) / dt
+                        rn = r.cross(n)
+                        mn = 1.0 / (1.0 / Ms + rn.dot(Is @ rn))
+                        old = ti.cast(0.0, ti.f64)
+                        if ti.static(it > 0):
+                            old = ti.cast(acc[c, j, 0], ti.f64)
+                        new = old + (target - un) * mn
+                        if not (kind > 0.5 and kind < 1.5 and phi <= 0.0):  # slip: held once touching
+                            new = ti.max(new, 0.0)
+                        dl = new - old
+                        acc[c, j, 0] = ti.cast(new, ti.f32)
+                        imp = dl * n
+                        if fric > 0.0:
+                            # the contact's share of the body after its normal impulse
+                            Vs = V + dl * n / Ms
+                            ws = w + Is @ (dl * rn)
+                            u = Vs + ws.cross(r) - vc
+                            ut = u - u.dot(n) * n
+                            vt = ut.norm()
+                            if vt > 1e-12:
+                                tdir = ut / vt
+                                rt = r.cross(tdir)
+                                mt = 1.0 / (1.0 / Ms + rt.dot(Is @ rt))
+                                at = ti.Vector.zero(ti.f64, 3)
+                                if ti.static(it > 0):
+                                    at = ti.Vector([acc[c, j, 1], acc[c, j, 2], acc[c, j, 3]], dt=ti.f64)
+                                at_new = at - vt * mt * tdir
+                                lim = fric * ti.max(acc[c, j, 0], 0.0)
+                                if at_new.norm() > lim:
+                                    at_new *= lim / at_new.norm()
+                                for q in ti.static(range(3)):
+                                    acc[c, j, 1 + q] = ti.cast(at_new[q], ti.f32)
+                                imp += at_new - at
+                            elif ti.static(it == 0):
+                                for q in ti.static(range(3)):
+                                    acc[c, j, 1 + q] = 0.0
+                        elif ti.static(it == 0):
+                            for q in ti.static(range(3)):
+                                acc[c, j, 1 + q] = 0.0
+                    ang = r.cross(imp)
+                    for q in ti.static(range(3)):
+                        ti.atomic_add(jac[b, it, q], imp[q])
+                        ti.atomic_add(jac[b, it, 3 + q], ang[q])
+        for b in range(B):  # the velocities after the solve, the new pose before the position passes
+            M = body_M[b]
+            R = body_R[b]
+            Iinv = R @ body_I0inv[b] @ R.transpose()
+            dP = ti.Vector.zero(ti.f64, 3)
+            dL = ti.Vector.zero(ti.f64, 3)
+            for k in ti.static(range(JACOBI_ITERS)):
+                dP += ti.Vector([jac[b, k, 0], jac[b, k, 1], jac[b, k, 2]], dt=ti.f64)
+                dL += ti.Vector([jac[b, k, 3], jac[b, k, 4], jac[b, k, 5]], dt=ti.f64)
+            V = ti.Vector([work[b, _W_V], work[b, _W_V + 1], work[b, _W_V + 2]], dt=ti.f64) + dP / M
+            w = ti.Vector([work[b, _W_W], work[b, _W_W + 1], work[b, _W_W + 2]], dt=ti.f64) + Iinv @ dL
+            Lm = (Iinv.inverse()) @ w
+            cb = body_c[b] + dt * V
+            R_new = _orthonormal(_rotation(w, dt) @ R)
+            for q in ti.static(range(3)):
+                work[b, _W_V + q] = V[q]
+                work[b, _W_L + q] = Lm[q]
+                work[b, _W_C + q] = cb[q]
+            for q in ti.static(range(9)):
+                work[b, _W_R + q] = R_new[q // 3, q % 3]
+        for it in ti.static(range(POSITION_ITERS)):
+            # the deepest contact per body: its depth by an atomic minimum, then the first row
+            # (in the serial solve's order) of that depth by an atomic minimum of the row index
+            for i in range(n_rows):
+                c = i // cap
+                j = i - c * cap
+                if j < ct_count[c] and ct[c, j, 13] < 0.5:
+                    b = ti.cast(ct[c, j, 0], ti.i32)
+                    shift = _shift(ct, work, win, b, cap, it)
+                    r = ti.Vector([ct[c, j, 1], ct[c, j, 2], ct[c, j, 3]], dt=ti.f64)
+                    n = ti.Vector([ct[c, j, 4], ct[c, j, 5], ct[c, j, 6]], dt=ti.f64)
+                    vc = ti.Vector([ct[c, j, 8], ct[c, j, 9], ct[c, j, 10]], dt=ti.f64)
+                    R_new = _work_R(work, b)
+                    cb = ti.Vector([work[b, _W_C], work[b, _W_C + 1], work[b, _W_C + 2]], dt=ti.f64)
+                    r_new = R_new @ (body_R[b].transpose() @ r)
+                    d_pos = (cb + r_new + shift) - (body_c[b] + r) - dt * vc
+                    d = ti.cast(ct[c, j, 7], ti.f64) + d_pos.dot(n)
+                    depth[c, j] = d
+                    if d < 0.0:
+                        ti.atomic_min(work[b, _W_WORST + it], d)
+            for i in range(n_rows):
+                c = i // cap
+                j = i - c * cap
+                if j < ct_count[c] and ct[c, j, 13] < 0.5:
+                    b = ti.cast(ct[c, j, 0], ti.i32)
+                    d = depth[c, j]
+                    if d < 0.0 and d == work[b, _W_WORST + it]:
+                        ti.atomic_min(win[b, it], i)
+        for b in range(B):
+            shift = _shift(ct, work, win, b, ct.shape[1], POSITION_ITERS)
+            R_new = _work_R(work, b)
+            body_c[b] = ti.Vector([work[b, _W_C], work[b, _W_C + 1], work[b, _W_C + 2]], dt=ti.f64) + shift
+            body_R[b] = R_new
+            body_V[b] = ti.Vector([work[b, _W_V], work[b, _W_V + 1], work[b, _W_V + 2]], dt=ti.f64)
+            Lm = ti.Vector([work[b, _W_L], work[b, _W_L + 1], work[b, _W_L + 2]], dt=ti.f64)
+            body_w[b] = R_new @ body_I0inv[b] @ R_new.transpose() @ Lm
+
+    @ti.kernel
     def scatter(x: K.V1, v: K.V1, C: K.M1, F: K.M1, tau: K.M1, rb_p: K.I1, rb_b: K.I1, rb_r0: K.V1,
                 body_c: V1d, body_R: M1d, body_V: V1d, body_w: V1d, body_K: M1d):
         """Particles onto the bodies' rigid motion: x = c + R r0, v = V + w x r, C = [w]x, F = R K
@@ -343,7 +606,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
             F[p] = ti.cast(R @ body_K[b], ti.f32)
             tau[p] = ti.Matrix.zero(ti.f32, 3, 3)
 
-    return SimpleNamespace(reduce=reduce, advance=advance, scatter=scatter)
+    return SimpleNamespace(reduce=reduce, advance=advance, advance_jacobi=advance_jacobi, scatter=scatter)
 
 
 class RigidBodies:
@@ -353,9 +616,14 @@ class RigidBodies:
         bodies: per body the storage indices [P_b] of its particles.
         x: [P, 3] particle positions (m) in storage order; mass: [P] (kg).
         dx: grid spacing (m); n_chunks: threads of the reduction (:func:`reduce_chunks`).
+        solve: the contact solve, "serial" or "jacobi" (:func:`contact_solve`).
     """
 
-    def __init__(self, bodies: list, x: np.ndarray, mass: np.ndarray, dx: float, n_chunks: int, names: list):
+    def __init__(self, bodies: list, x: np.ndarray, mass: np.ndarray, dx: float, n_chunks: int, names: list,
+                 solve: str = "serial"):
+        if solve not in ("serial", "jacobi"):
+            raise ValueError(f"rigid contact solve must be 'serial' or 'jacobi', not {solve!r}")
+        self.solve = solve
         self.names = list(names)
         self.n_bodies = len(bodies)
         self.dx = float(dx)
@@ -386,11 +654,26 @@ class RigidBodies:
         self.body_w = _nd(np.zeros((self.n_bodies, 3)), vec3d)
         self.body_K = _nd(np.broadcast_to(np.eye(3), (self.n_bodies, 3, 3)).copy(), mat3d)
         T = max(1, int(n_chunks))
-        self.part = ti.ndarray(ti.f64, (T, self.n_bodies, 6))
+        self.part = ti.ndarray(ti.f64, (T, self.n_bodies, 7))
         cap = CT_PER_PARTICLE * (self.n_particles // T + 1) + 8
         self.ct = ti.ndarray(ti.f32, (T, cap, CT_WIDTH))
         self.acc = ti.ndarray(ti.f32, (T, cap, 4))
         self.ct_count = ti.ndarray(ti.i32, T)
+        if solve == "jacobi":  # advance_jacobi's scratch
+            self.work = ti.ndarray(ti.f64, (self.n_bodies, _W_WIDTH))
+            self.jac = ti.ndarray(ti.f64, (self.n_bodies, JACOBI_ITERS, 6))
+            self.depth = ti.ndarray(ti.f64, (T, cap))
+            self.win = ti.ndarray(ti.i32, (self.n_bodies, POSITION_ITERS))
+
+    def advance(self, kr: SimpleNamespace, dt: float) -> None:
+        """Solve the contacts and move the bodies (``kr``: :func:`build`'s kernels)."""
+        args = (self.part, self.ct, self.ct_count, self.acc, self.body_c, self.body_R, self.body_V, self.body_w,
+                self.body_M, self.body_I0inv)
+        if self.solve == "jacobi":
+            T, cap = self.ct.shape[0], self.ct.shape[1]
+            kr.advance_jacobi(*args, self.work, self.jac, self.depth, self.win, float(dt), int(T * cap), int(self.n_bodies))
+        else:
+            kr.advance(*args, float(dt))
 
     def state(self) -> dict:
         """Body state as numpy: centre [B, 3] (m), R [B, 3, 3], V [B, 3] (m/s), omega [B, 3] (rad/s)."""

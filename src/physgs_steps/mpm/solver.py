@@ -266,7 +266,8 @@ class MPMSolver:
         if free:
             bodies = [np.flatnonzero(mat_sorted == k) for k in free]
             chunks = rigid_mod.reduce_chunks(self.arch, self.n_chunks, sum(len(i) for i in bodies))
-            self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, chunks, [self.materials[k].name for k in free])
+            self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, chunks, [self.materials[k].name for k in free],
+                                               rigid_mod.contact_solve(self.arch))
             b = self.bound
             self._kr = rigid_mod.build(b.counts, b.boundary, bool(self._static_geoms), self.private_grid)
 
@@ -489,8 +490,7 @@ class MPMSolver:
             kr.reduce(self.x, self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_R, rb.part, rb.ct,
                       rb.ct_count, self._dyn, self._lvl_phi, self._lvl_id, self._lvl_rows, float(self.time),
                       float(self.dx), float(b.wall_margin), self.n_grid)
-            kr.advance(rb.part, rb.ct, rb.ct_count, rb.acc, rb.body_c, rb.body_R, rb.body_V, rb.body_w, rb.body_M,
-                       rb.body_I0inv, float(dt))
+            rb.advance(kr, dt)
             kr.scatter(self.x, self.v, self.C, self.F, self.tau, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R,
                        rb.body_V, rb.body_w, rb.body_K)
         self.time += dt
