@@ -224,3 +224,38 @@ def test_frictionless_wall_in_the_floor_band_keeps_the_floor_friction():
 
     clear, overlap = slide(9.8), slide(1.8)  # the wall's band [1.6, 2.6) cells holds the ground's node 2
     assert abs(overlap / clear - 1.0) < 0.1, (overlap, clear)
+
+
+def test_sparse_held_clusters_with_nothing_free_stay_finite():
+    """Sparse clusters of strained material just inside a fixed cuboid's face, nothing free
+    around them: the nodes just outside the face hold only the held particles' fringe mass, and
+    each substep their stress impulse alone (the held particles bring no momentum).  With the
+    ghost nodes' mirror one cell in front of the face, the ghost nodes extrapolated that impulse
+    into the box and the held particles strained with it: 6 of these 30 clusters went NaN or
+    J <= 0 (the udon scene's grip: J 0.005 at frame 9).  The mirror now lies beyond the held
+    particles' reach (colliders.HELD_REACH)."""
+    G = 32
+    dx = 1.0 / G
+    dyn = Dynamics.from_config({"gravity": [0, 0, 0], "ground": None, "boundary_conditions": [
+        {"type": "cuboid", "point": [0.5, 0.5, 0.35], "size": [0.1, 0.1, 0.05], "velocity": [0, 0, 0]}]}, "test")
+    m = Material("fixed_corotated", "identity", E=5e4, nu=0.3, density=1000.0, name="held")
+    dt = 0.5 * dx / m.wave_speed
+    worst = []
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        ppc = rng.uniform(0.5, 3.0)  # particles per cell, up to 2 cells below the top face (z 0.4)
+        lo = np.array([0.45, 0.45, 0.4 - rng.uniform(0.5, 2.0) * dx])
+        hi = np.array([0.55, 0.55, 0.4 - rng.uniform(0.0, 0.5) * dx])
+        n = max(8, int(np.prod((hi - lo) / dx) * ppc))
+        x = lo + rng.random((n, 3)) * (hi - lo)
+        sol = MPMSolver([m], n_grid=G, dynamics=dyn, backend="cpu")
+        sol.set_particles(x, np.full(n, dx ** 3 / 4), np.zeros(n, int))
+        st = sol.get_state()
+        sol.set_state(st["x"], st["v"], st["C"], np.eye(3) + rng.normal(0.0, 0.1, (n, 3, 3)))
+        for _ in range(300):
+            sol.substep(dt)
+        F = sol.get_state()["F"]
+        J = np.linalg.det(F) if np.isfinite(F).all() else np.array([np.nan])
+        worst.append((seed, float(np.min(J)), float(np.max(J))))
+    bad = [w for w in worst if not (0.4 < w[1] and w[2] < 2.5)]  # initial J 0.7-1.4
+    assert not bad, bad

@@ -61,13 +61,23 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
   to hold it there (its lowest layers pile up on the plane, held only by the particle
   projection: a jelly column shortened by 2.5x its exact value; bench_rigid.py).  Cuboids
   (holding regions) get the ghost rule on every node inside them and none in front (the held
-  particles inside carry the reaction); a cuboid's ghost node reads its mirror only where the
-  mirror's mean node mass is at least ``MIRROR_MASS`` (half) of its own, else it takes the plain
-  rule: where a thin fringe of free material lies in front of a full holding region (a plant's
-  stem at the pot's rim), the held particles' stress drives the light mirror nodes, the ghost
-  nodes extrapolate them up to twice, and the held particles strain further: that loop diverged
-  (the ficus at grid 64 went NaN in 4 frames; tests/test_mpm_dynamics.py has a small copy).  Deeper nodes, or nodes whose mirror has no mass, get
-  the plain node rule (sticky: v_c; slip/separate: inward normal part removed, friction).
+  particles inside carry the reaction), with the mirror ``d = (HELD_REACH + 1) dx`` (2.5 cells)
+  in front of the face: its trilinear cube lies beyond the reach of every held particle's
+  stencil (1.5 cells), so a ghost node extrapolates the free material's motion only, never the
+  held particles' own transfer.  With the mirror one cell in front (as before), the nodes just
+  outside a face where little free material lies (a noodle clump's top inside the grip, an empty
+  side of the box) carried almost only the held particles' fringe mass; the held particles
+  bring no momentum (they transfer the holder's velocity), so each substep these nodes took
+  their stress impulse alone, several m/s on a node of 1 % of a full node's mass; the ghost
+  nodes extrapolated it into the box (up to twice) and the held particles strained with it: a
+  loop with no inertia, unstable where its gain passed 2 (udon's hold at E 4.96e4 Pa: J 0.005
+  at frame 9; a sparse held cluster with nothing free: NaN; tests/test_mpm_dynamics.py).  A
+  cuboid's ghost node also reads its mirror only where the mirror's mean node mass is at least
+  ``MIRROR_MASS`` (half) of its own, else it takes the plain rule (a sparse fringe of free
+  material in front of a full holding region: a plant's stem at the pot's rim; the ficus at
+  grid 64 went NaN in 4 frames before either rule; the test has a small copy).  Deeper nodes,
+  or nodes whose mirror has no mass, get the plain node rule (sticky: v_c; slip/separate:
+  inward normal part removed, friction).
 * particles: after G2P a deformable particle with ``phi < 0`` is moved back onto the surface
   (``x -= phi n``) and its inward normal velocity removed (sticky: ``v = v_c``).  So a body's
   outermost particles (for a reconstruction: the surface gaussians) rest on the surface, within
@@ -75,8 +85,10 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
   cuboid is a holding region, not an obstacle: a particle inside an active cuboid moves with
   the cuboid and strains with the velocity field the ghost nodes extend into the box, so the
   stress stays continuous across the face and the free material is clamped exactly at the
-  face (bench_boundaries.py: the clamped bar's effective length is within 0.03 % of the true
-  one at grid 32 and 64); it transfers the cuboid's own velocity (no affine part), and forces
+  face (bench_boundaries.py: the clamped bar's effective length is within 0.2 % of the true
+  one at grid 32 and 64: +0.16 % and -0.02 %; +2.7 % at grid 16, where the bar is 2 cells wide;
+  with the mirror one cell out, before it moved beyond the held particles' reach, +0.03 %,
+  -0.02 % and +1.65 %); it transfers the cuboid's own velocity (no affine part), and forces
   on it (wind, impulses) are taken by the holder.  Rigid bodies are handled as bodies
   (:mod:`physgs_steps.mpm.rigid`).
 
@@ -94,6 +106,7 @@ SURFACE_KIND = {"sticky": 0.0, "slip": 1.0, "separate": 2.0}
 TOUCH = 0.1          # cells: a particle this close to an obstacle (or behind it) touches it
 GHOST_BAND = 2.0     # nodes up to this many cells behind a surface get ghost velocities
 FRONT_BAND = 1.0     # cells: engaged nodes this close in front of an obstacle carry its reaction
+HELD_REACH = 1.5     # cells: a held particle's stencil reaches nodes less than this far in front of its holding region (cuboid mirrors lie beyond it)
 MIRROR_MASS = 0.5    # cuboids: a ghost node reads its mirror only where the mirror's mean node mass is this fraction of its own
 FINE = 4             # level sets: voxels per grid cell of the fine occupancy grid
 MAX_FINE_VOXELS = 40_000_000

@@ -63,7 +63,7 @@ import taichi as ti
 from . import materials as M
 from . import p2g_sorted as P2G
 
-from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, MIRROR_MASS, TOUCH
+from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, HELD_REACH, MIRROR_MASS, TOUCH
 
 from .p2g_sorted import I1, M1, S1, V1, mat3, vec3  # noqa: E402,F401  (per-particle types, defined once there; K.mat3 is used by solver and rigid)
 
@@ -763,14 +763,14 @@ def build(spec: Spec) -> SimpleNamespace:
                                                               lvl_rows)
                     # obstacles act where material touches them, on the nodes behind them and
                     # those in front whose support holds the surface; cuboids (holding regions)
-                    # on every node inside
+                    # on every node inside, their mirrors beyond the held particles' reach
                     if active == 1:
                         if s < n_obst:
                             if engaged and phi < FRONT_BAND * dx:
                                 gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, FRONT_BAND,
                                                        0.0, grid_v, grid_m)
                         elif phi < 0.0:
-                            gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, 0.0,
+                            gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, HELD_REACH,
                                                    MIRROR_MASS * grid_m[0, i, j, k], grid_v, grid_m)
             grid_b[i, j, k] = gv
         # G2P, F update, return map, stress of the new F; boundaries on deformable particles
