@@ -100,7 +100,9 @@ rigid + 31,616 soft particles, 180 chunks), base 56b40c2 against this solve in t
 4.79 -> 2.51 ms a substep (wall clock), ``advance`` 3.017 ms -> ``advance_jacobi`` 0.424 ms of
 device time a substep (its 44 launched tasks together, about 10 us each: launches, not the
 solve, cost now; every other kernel 0.59 ms).  Since then its loop bounds are compile-time
-constants and it launches 24 tasks (counted with the CPU profiler); not yet timed on a GPU.  CPU (serial) against CUDA (Jacobi), grid 32, 400
+constants and it launches 24 tasks: on the H200 (commit 962613c, 10068a5 in the same call)
+5.01 -> 2.94 ms a substep, ``advance`` 3.01 ms -> ``advance_jacobi`` 0.26 ms; the kernels
+together now take 0.86 ms of the 2.94, the rest is the host launching four kernels a substep.  CPU (serial) against CUDA (Jacobi), grid 32, 400
 substeps of 2e-4 s (.devcarry/rigid_parallel/cmp_cuda.py, not in the repository): a block standing
 on the ground beside a soft block agrees to 1.1e-6 in x, 3e-5 in v; a block landing and sliding
 to rest on a raised ground (friction 0.5) agrees to 3.3e-4 in x, but 400 substeps after release
