@@ -357,7 +357,7 @@ def build(spec: Spec) -> SimpleNamespace:
 
     @ti.func
     def _box_lo_n(box: ti.template(), r):
-        """Row r of the node box (box.py): its low corner and its extents."""
+        """Row r of the node box (module docs "Node box"): its low corner and its extents."""
         lo = ti.Vector([box[r, 0], box[r, 1], box[r, 2]])
         return lo, ti.max(ti.Vector([box[r, 3], box[r, 4], box[r, 5]]) - lo, 0)
 
@@ -555,7 +555,7 @@ def build(spec: Spec) -> SimpleNamespace:
         G = grid_m.shape[1]
         L = dx * ti.cast(G, ti.f32)
         P = x.shape[0]
-        # node box (box.py): row 0 the nodes this substep's particles reach (every node loop
+        # node box (module docs "Node box"): row 0 the nodes this substep's particles reach (every node loop
         # below runs over it), row 1 last substep's, row 2 their union (cleared); CUDA: the grid
         if ti.static(private_grid):
             for c in range(n_chunks):  # per chunk of particles, rows 3 + c
@@ -678,7 +678,7 @@ def build(spec: Spec) -> SimpleNamespace:
             # sums in a fixed order (reproducible), parallel enough for a GPU: per (x, y) column
             # over z into gpart[i G + j], then per x slab over y into gpart[G^2 + i], then over x
             # (over the node box: outside it no node has mass)
-            for qc in range(_box_count(box, 0) // ti.max(box[0, 5] - box[0, 2], 1)):
+            for qc in range((box[0, 3] - box[0, 0]) * (box[0, 4] - box[0, 1])):  # the box's (x, y) columns
                 lo, n = _box_lo_n(box, 0)
                 i = lo[0] + qc // n[1]
                 j = lo[1] + qc % n[1]

@@ -159,6 +159,15 @@ def _skew(w):
 
 
 @ti.func
+def _contact(ct: ti.template(), c, j):
+    """Row j of chunk c of the contact table: r, n, phi, v_c (f64), kind, friction (f64), region."""
+    r = ti.Vector([ct[c, j, 1], ct[c, j, 2], ct[c, j, 3]], dt=ti.f64)
+    n = ti.Vector([ct[c, j, 4], ct[c, j, 5], ct[c, j, 6]], dt=ti.f64)
+    vc = ti.Vector([ct[c, j, 8], ct[c, j, 9], ct[c, j, 10]], dt=ti.f64)
+    return r, n, ti.cast(ct[c, j, 7], ti.f64), vc, ct[c, j, 11], ti.cast(ct[c, j, 12], ti.f64), ct[c, j, 13]
+
+
+@ti.func
 def _rotation(w, dt):
     """exp(dt [w]x) in f64 (Rodrigues)."""
     th = w.norm() * dt
@@ -189,6 +198,20 @@ def _work_R(work: ti.template(), b):
     for q in ti.static(range(9)):
         R[q // 3, q % 3] = work[b, _W_R + q]
     return R
+
+
+@ti.func
+def _jacobi_vw(work: ti.template(), jac: ti.template(), b, M, Iinv, upto: ti.template()):
+    """Body b's velocity (V, omega) in advance_jacobi after its first ``upto`` iterations: the
+    start plus their impulse sums, added in iteration order."""
+    dP = ti.Vector.zero(ti.f64, 3)
+    dL = ti.Vector.zero(ti.f64, 3)
+    for k in ti.static(range(upto)):
+        dP += ti.Vector([jac[b, k, 0], jac[b, k, 1], jac[b, k, 2]], dt=ti.f64)
+        dL += ti.Vector([jac[b, k, 3], jac[b, k, 4], jac[b, k, 5]], dt=ti.f64)
+    V = ti.Vector([work[b, _W_V], work[b, _W_V + 1], work[b, _W_V + 2]], dt=ti.f64) + dP / M
+    w = ti.Vector([work[b, _W_W], work[b, _W_W + 1], work[b, _W_W + 2]], dt=ti.f64) + Iinv @ dL
+    return V, w
 
 
 @ti.func
@@ -303,8 +326,8 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                             if a2 == 1 and n2.dot(n) > 0.99 and phi2 <= phi + 0.01 * dx:
                                 near = False
                     if active == 1 and near:
-                        # one contact per body, obstacle and grid cell: its deepest particle
-                        # (the particles are stored sorted by cell, so a cell's rows are among
+                        # one contact per body, obstacle and bin: its deepest particle (the
+                        # particles are stored sorted by cell, so a bin's rows are mostly among
                         # the last few; module docs "contact")
                         at = nc
                         for back in range(1, CT_MERGE_BACK + 1):
@@ -356,13 +379,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                 for c in range(T):
                     for j in range(ct_count[c]):
                         if ti.cast(ct[c, j, 0], ti.i32) == b:
-                            r = ti.Vector([ct[c, j, 1], ct[c, j, 2], ct[c, j, 3]], dt=ti.f64)
-                            n = ti.Vector([ct[c, j, 4], ct[c, j, 5], ct[c, j, 6]], dt=ti.f64)
-                            phi = ti.cast(ct[c, j, 7], ti.f64)
-                            vc = ti.Vector([ct[c, j, 8], ct[c, j, 9], ct[c, j, 10]], dt=ti.f64)
-                            kind = ct[c, j, 11]
-                            fric = ti.cast(ct[c, j, 12], ti.f64)
-                            region = ct[c, j, 13]
+                            r, n, phi, vc, kind, fric, region = _contact(ct, c, j)
                             u = V + w.cross(r) - vc
                             if region > 0.5 or (kind < 0.5 and phi <= 0.0):
                                 # stick: u = 0 at the contact (K^-1 with K = Id / M - [r]x I^-1 [r]x)
@@ -414,12 +431,10 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                 for c in range(T):
                     for j in range(ct_count[c]):
                         if ti.cast(ct[c, j, 0], ti.i32) == b and ct[c, j, 13] < 0.5:
-                            r = ti.Vector([ct[c, j, 1], ct[c, j, 2], ct[c, j, 3]], dt=ti.f64)
-                            n = ti.Vector([ct[c, j, 4], ct[c, j, 5], ct[c, j, 6]], dt=ti.f64)
-                            vc = ti.Vector([ct[c, j, 8], ct[c, j, 9], ct[c, j, 10]], dt=ti.f64)
+                            r, n, phi, vc, _kind, _fric, _region = _contact(ct, c, j)
                             r_new = R_new @ (R.transpose() @ r)
                             d_pos = (cb + r_new + shift) - (body_c[b] + r) - dt * vc
-                            depth = ti.cast(ct[c, j, 7], ti.f64) + d_pos.dot(n)
+                            depth = phi + d_pos.dot(n)
                             if depth < worst:
                                 worst = depth
                                 wn = n
@@ -477,24 +492,12 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                     M = body_M[b]
                     R = body_R[b]
                     Iinv = R @ body_I0inv[b] @ R.transpose()
-                    dP = ti.Vector.zero(ti.f64, 3)
-                    dL = ti.Vector.zero(ti.f64, 3)
-                    for k in ti.static(range(it)):
-                        dP += ti.Vector([jac[b, k, 0], jac[b, k, 1], jac[b, k, 2]], dt=ti.f64)
-                        dL += ti.Vector([jac[b, k, 3], jac[b, k, 4], jac[b, k, 5]], dt=ti.f64)
-                    V = ti.Vector([work[b, _W_V], work[b, _W_V + 1], work[b, _W_V + 2]], dt=ti.f64) + dP / M
-                    w = ti.Vector([work[b, _W_W], work[b, _W_W + 1], work[b, _W_W + 2]], dt=ti.f64) + Iinv @ dL
+                    V, w = _jacobi_vw(work, jac, b, M, Iinv, it)
                     # mass splitting: this contact's share of the body, mass M / n, inertia I / n
                     ns = work[b, _W_N]
                     Ms = M / ns
                     Is = Iinv * ns
-                    r = ti.Vector([ct[c, j, 1], ct[c, j, 2], ct[c, j, 3]], dt=ti.f64)
-                    n = ti.Vector([ct[c, j, 4], ct[c, j, 5], ct[c, j, 6]], dt=ti.f64)
-                    phi = ti.cast(ct[c, j, 7], ti.f64)
-                    vc = ti.Vector([ct[c, j, 8], ct[c, j, 9], ct[c, j, 10]], dt=ti.f64)
-                    kind = ct[c, j, 11]
-                    fric = ti.cast(ct[c, j, 12], ti.f64)
-                    region = ct[c, j, 13]
+                    r, n, phi, vc, kind, fric, region = _contact(ct, c, j)
                     u = V + w.cross(r) - vc
                     imp = ti.Vector.zero(ti.f64, 3)  # this iteration's impulse at the contact
                     if region > 0.5 or (kind < 0.5 and phi <= 0.0):
@@ -550,13 +553,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
             M = body_M[b]
             R = body_R[b]
             Iinv = R @ body_I0inv[b] @ R.transpose()
-            dP = ti.Vector.zero(ti.f64, 3)
-            dL = ti.Vector.zero(ti.f64, 3)
-            for k in ti.static(range(JACOBI_ITERS)):
-                dP += ti.Vector([jac[b, k, 0], jac[b, k, 1], jac[b, k, 2]], dt=ti.f64)
-                dL += ti.Vector([jac[b, k, 3], jac[b, k, 4], jac[b, k, 5]], dt=ti.f64)
-            V = ti.Vector([work[b, _W_V], work[b, _W_V + 1], work[b, _W_V + 2]], dt=ti.f64) + dP / M
-            w = ti.Vector([work[b, _W_W], work[b, _W_W + 1], work[b, _W_W + 2]], dt=ti.f64) + Iinv @ dL
+            V, w = _jacobi_vw(work, jac, b, M, Iinv, JACOBI_ITERS)
             Lm = (Iinv.inverse()) @ w
             cb = body_c[b] + dt * V
             R_new = _orthonormal(_rotation(w, dt) @ R)
@@ -575,14 +572,12 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                 if j < ct_count[c] and ct[c, j, 13] < 0.5:
                     b = ti.cast(ct[c, j, 0], ti.i32)
                     shift = _shift(ct, work, win, b, cap, it)
-                    r = ti.Vector([ct[c, j, 1], ct[c, j, 2], ct[c, j, 3]], dt=ti.f64)
-                    n = ti.Vector([ct[c, j, 4], ct[c, j, 5], ct[c, j, 6]], dt=ti.f64)
-                    vc = ti.Vector([ct[c, j, 8], ct[c, j, 9], ct[c, j, 10]], dt=ti.f64)
+                    r, n, phi, vc, _kind, _fric, _region = _contact(ct, c, j)
                     R_new = _work_R(work, b)
                     cb = ti.Vector([work[b, _W_C], work[b, _W_C + 1], work[b, _W_C + 2]], dt=ti.f64)
                     r_new = R_new @ (body_R[b].transpose() @ r)
                     d_pos = (cb + r_new + shift) - (body_c[b] + r) - dt * vc
-                    d = ti.cast(ct[c, j, 7], ti.f64) + d_pos.dot(n)
+                    d = phi + d_pos.dot(n)
                     depth[c, j] = d
                     if d < 0.0:
                         ti.atomic_min(work[b, _W_WORST + it], d)
