@@ -112,8 +112,60 @@ def test_dispatch_in_process_when_disabled(wdir, tmp_path, monkeypatch):
 def test_worker_module_imports_only_the_standard_library():
     import subprocess
 
-    code = ("import sys, physgs_steps.worker; heavy = [m for m in ('torch', 'taichi', 'yaml', 'h5py', 'scipy') "
-            "if m in sys.modules]; print(heavy)")
+    code = ("import sys, physgs_steps.worker, physgs_steps.job; heavy = [m for m in ('torch', 'taichi', 'yaml', "
+            "'h5py', 'scipy', 'numpy', 'snakemake') if m in sys.modules]; print(heavy)")
     env = dict(os.environ, PYTHONPATH=str(Path(W.__file__).resolve().parents[1]))
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert r.stdout.strip() == "[]", r.stdout + r.stderr
+
+
+def _job_cmd(stage: str, spec, log: str) -> list[str]:
+    return [sys.executable, "-m", "physgs_steps.job", stage, spec if isinstance(spec, str) else json.dumps(spec), log]
+
+
+def _job_env(**extra) -> dict:
+    return dict(os.environ, PYTHONPATH=str(Path(W.__file__).resolve().parents[1]), **extra)
+
+
+def test_job_client_runs_in_the_worker_or_in_process(wdir, tmp_path):
+    """The stage rules' command (physgs_steps.job): in the warm worker when wanted, in its own
+    process when not; the spec as JSON text or as @file; the stage's failure is its exit status."""
+    import subprocess
+
+    ins, outs, cfg, log, out = _report_job(tmp_path, "j1")
+    spec = {"input": ins, "output": outs, "cfg": cfg, "worker": {"stages": ["stage_report"]}}
+    r = subprocess.run(_job_cmd("stage_report", spec, log), capture_output=True, text=True,
+                       env=_job_env(PHYSGS_WORKER="1", PHYSGS_WORKER_DIR=str(wdir)))
+    assert r.returncode == 0, r.stderr
+    assert "in the warm worker" in r.stderr and "prepare\t\t1.500" in out.read_text()
+    assert W.ping() and W.ping()["jobs"] == 1
+
+    ins, outs, cfg, log, out = _report_job(tmp_path, "j2")  # no worker wanted: runs here, from a spec file
+    f = tmp_path / "spec.json"
+    f.write_text(json.dumps({"input": ins, "output": outs, "cfg": cfg, "worker": {"stages": ["stage_report"]}}))
+    r = subprocess.run(_job_cmd("stage_report", f"@{f}", log), capture_output=True, text=True,
+                       env=_job_env(PHYSGS_WORKER="0", PHYSGS_WORKER_DIR=str(wdir)))
+    assert r.returncode == 0, r.stderr
+    assert "in the warm worker" not in r.stderr and out.exists()
+    assert W.ping()["jobs"] == 1  # the worker did not see it
+
+    ins, outs, cfg, log, out = _report_job(tmp_path, "j3")  # a failing stage: its status, no output
+    spec = {"input": ins, "output": outs, "cfg": {"jobs": [{"rule": "prepare", "benchmark": str(tmp_path / "none.tsv")}]}}
+    r = subprocess.run(_job_cmd("stage_report", spec, log), capture_output=True, text=True,
+                       env=_job_env(PHYSGS_WORKER="0", PHYSGS_WORKER_DIR=str(wdir)))
+    assert r.returncode != 0 and not out.exists()
+
+
+def test_job_client_rejects_a_bad_spec(tmp_path):
+    import subprocess
+
+    env = _job_env(PHYSGS_WORKER="0")
+    r = subprocess.run(_job_cmd("stage_report", "{not json", str(tmp_path / "l.log")), capture_output=True, text=True,
+                       env=env)
+    assert r.returncode != 0 and "not valid JSON" in r.stderr
+    r = subprocess.run(_job_cmd("stage_report", f"@{tmp_path / 'missing.json'}", str(tmp_path / "l.log")),
+                       capture_output=True, text=True, env=env)
+    assert r.returncode != 0 and "missing.json" in r.stderr
+    r = subprocess.run(_job_cmd("no_such_stage", {"input": {}, "output": {}, "cfg": {}}, str(tmp_path / "l.log")),
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 2 and "unknown stage 'no_such_stage'" in r.stderr

@@ -4,9 +4,11 @@ Public API:
     load_gaussians(path) -> GaussianScene     # INRIA .ply or antimatter15 .splat
     save_gaussians(scene, path)               # INRIA binary little-endian .ply
     GaussianScene                             # the scene type (see gaussians.py)
-"""
-from .gaussians import GaussianScene
 
+Importing the package itself loads nothing heavy (no numpy): a Snakemake job's client
+(``python -m physgs_steps.job``) must start in milliseconds.  ``GaussianScene`` is imported on
+first use.
+"""
 __all__ = ["GaussianScene", "load_gaussians", "save_gaussians"]
 __version__ = "0.1.0"
 
@@ -23,3 +25,11 @@ def save_gaussians(scene, path):
     from .scene_io import save_gaussians as _save
 
     return _save(scene, path)
+
+
+def __getattr__(name):
+    if name == "GaussianScene":
+        from .gaussians import GaussianScene
+
+        return GaussianScene
+    raise AttributeError(f"module 'physgs_steps' has no attribute {name!r}")

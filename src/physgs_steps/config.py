@@ -41,9 +41,12 @@ def schema_dir() -> Path:
 
 
 # ---------------------------------------------------------------------------- YAML
-class YamlLoader(yaml.SafeLoader):
+class YamlLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
     """PyYAML's safe loader with YAML 1.2's float rule: ``5e4``, ``1E-3`` and ``.5`` are floats
-    (YAML 1.1 requires a dot and a signed exponent, so PyYAML reads ``5e4`` as a string)."""
+    (YAML 1.1 requires a dot and a signed exponent, so PyYAML reads ``5e4`` as a string).
+    libyaml's parser where PyYAML has it (the rule is applied by the Python resolver either way):
+    every Snakemake start reads the config, each scene file and the material knowledge base,
+    0.3 s with the pure-Python parser on the 2-core machine."""
 
 
 YamlLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}

@@ -28,6 +28,7 @@ rule bench_stress:
         index=r"[0-9]+",
     params:
         cfg=bench_stress_cfg,
+        job=job_spec(bench_stress_cfg),
     log:
         "results/{scene}/logs/bench_stress-{stress_id}-{index}.log",
     benchmark:
@@ -36,8 +37,8 @@ rule bench_stress:
         mem_mb=mem_mb("bench_stress"),
         runtime=runtime_min("bench_stress"),
         gpu=gpu_count("bench_stress"),
-    script:
-        "../scripts/bench_stress.py"
+    shell:
+        STAGE_JOB
 
 
 rule benchmark_stage_table:

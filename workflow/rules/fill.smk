@@ -6,6 +6,7 @@ rule cluster:
         clusters="results/{scene}/cluster/{cluster_id}/clusters.json",
     params:
         cfg=stage_cfg("cluster", "cluster"),
+        job=job_spec(stage_cfg("cluster", "cluster")),
     log:
         "results/{scene}/logs/cluster-{cluster_id}.log",
     benchmark:
@@ -13,8 +14,8 @@ rule cluster:
     resources:
         mem_mb=mem_mb("cluster"),
         runtime=runtime_min("cluster"),
-    script:
-        "../scripts/cluster.py"
+    shell:
+        STAGE_JOB
 
 
 rule fill:
@@ -28,6 +29,7 @@ rule fill:
         report="results/{scene}/fill/{fill_id}/fill_report.json",
     params:
         cfg=stage_cfg("fill", "fill"),
+        job=job_spec(stage_cfg("fill", "fill")),
     log:
         "results/{scene}/logs/fill-{fill_id}.log",
     benchmark:
@@ -35,5 +37,5 @@ rule fill:
     resources:
         mem_mb=mem_mb("fill"),
         runtime=runtime_min("fill"),
-    script:
-        "../scripts/fill.py"
+    shell:
+        STAGE_JOB

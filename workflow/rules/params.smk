@@ -9,6 +9,7 @@ rule vlm_params:
         params_id=r"(prior|qwen3vl|openai)-[0-9a-f]+",
     params:
         cfg=stage_cfg("params", "params"),
+        job=job_spec(stage_cfg("params", "params")),
     log:
         "results/{scene}/logs/vlm_params-{params_id}.log",
     benchmark:
@@ -17,8 +18,8 @@ rule vlm_params:
         mem_mb=mem_mb("vlm_params"),
         runtime=runtime_min("vlm_params"),
         gpu=gpu_count("vlm_params"),
-    script:
-        "../scripts/vlm_params.py"
+    shell:
+        STAGE_JOB
 
 
 # A scene whose instances are all fully pinned leaves vlm_params out: params come from the file.
@@ -31,9 +32,10 @@ rule pinned_params:
         params_id=r"pinned-[0-9a-f]+",
     params:
         cfg=stage_cfg("params", "params"),
+        job=job_spec(stage_cfg("params", "params")),
     log:
         "results/{scene}/logs/pinned_params-{params_id}.log",
     benchmark:
         "results/{scene}/benchmarks/pinned_params-{params_id}.tsv"
-    script:
-        "../scripts/pinned_params.py"
+    shell:
+        STAGE_JOB

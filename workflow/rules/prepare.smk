@@ -5,7 +5,8 @@ rule prepare:
         scene="results/{scene}/scene.ply",
         transform="results/{scene}/transform.json",
     params:
-        cfg=lambda w: target_plan(w.scene).cfgs["prepare"],
+        cfg=target_cfg("prepare", "scene"),
+        job=job_spec(target_cfg("prepare", "scene")),
     log:
         "results/{scene}/logs/prepare.log",
     benchmark:
@@ -13,5 +14,5 @@ rule prepare:
     resources:
         mem_mb=mem_mb("prepare"),
         runtime=runtime_min("prepare"),
-    script:
-        "../scripts/prepare.py"
+    shell:
+        STAGE_JOB

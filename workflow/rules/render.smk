@@ -6,7 +6,8 @@ rule render:
         contact_sheet="results/{target}/contact_sheet.png",
         report="results/{target}/render.json",
     params:
-        cfg=lambda w: target_plan(w.target).cfgs["render"],
+        cfg=target_cfg("render"),
+        job=job_spec(target_cfg("render")),
     log:
         "results/{target}/logs/render.log",
     benchmark:
@@ -15,8 +16,8 @@ rule render:
         mem_mb=mem_mb("render"),
         runtime=runtime_min("render"),
         gpu=gpu_count("render"),
-    script:
-        "../scripts/render.py"
+    shell:
+        STAGE_JOB
 
 
 rule metrics:
@@ -27,7 +28,8 @@ rule metrics:
     output:
         metrics="results/{target}/metrics.json",
     params:
-        cfg=lambda w: target_plan(w.target).cfgs["metrics"],
+        cfg=target_cfg("metrics"),
+        job=job_spec(target_cfg("metrics")),
     log:
         "results/{target}/logs/metrics.log",
     benchmark:
@@ -36,5 +38,5 @@ rule metrics:
         mem_mb=mem_mb("metrics"),
         runtime=runtime_min("metrics"),
         gpu=gpu_count("metrics"),   # 0 unless "metrics" is in resources.gpu_stages (a VideoPhy2 rater on a GPU)
-    script:
-        "../scripts/metrics.py"
+    shell:
+        STAGE_JOB

@@ -7,9 +7,10 @@ rule stage_report:
         table="results/{target}/stage_report.tsv",
     params:
         cfg=lambda w: {"jobs": report_jobs(w)},
+        job=job_spec(lambda w: {"jobs": report_jobs(w)}),
     log:
         "results/{target}/logs/stage_report.log",
     benchmark:
         "results/{target}/benchmarks/stage_report.tsv"
-    script:
-        "../scripts/stage_report.py"
+    shell:
+        STAGE_JOB

@@ -5,6 +5,7 @@ rule forward_sim:
         keyframes="results/{scene}/sim/{sim_id}/{step}/forward.h5",
     params:
         cfg=stage_cfg("sim", "sim"),
+        job=job_spec(stage_cfg("sim", "sim")),
     log:
         "results/{scene}/logs/forward_sim-{sim_id}-{step}.log",
     benchmark:
@@ -13,8 +14,8 @@ rule forward_sim:
         mem_mb=mem_mb("forward_sim"),
         runtime=runtime_min("forward_sim"),
         gpu=gpu_count("forward_sim"),
-    script:
-        "../scripts/forward_sim.py"
+    shell:
+        STAGE_JOB
 
 
 rule bgdo_update:
@@ -26,6 +27,7 @@ rule bgdo_update:
         step=r"it[1-9][0-9]*-[0-9a-f]+",
     params:
         cfg=stage_cfg("sim", "bgdo"),
+        job=job_spec(stage_cfg("sim", "bgdo")),
     log:
         "results/{scene}/logs/bgdo_update-{sim_id}-{step}.log",
     benchmark:
@@ -34,8 +36,8 @@ rule bgdo_update:
         mem_mb=mem_mb("bgdo_update"),
         runtime=runtime_min("bgdo_update"),
         gpu=gpu_count("bgdo_update"),
-    script:
-        "../scripts/bgdo_update.py"
+    shell:
+        STAGE_JOB
 
 
 rule final_sim:
@@ -45,6 +47,7 @@ rule final_sim:
         frames="results/{scene}/sim/{sim_id}/{step}/final.h5",
     params:
         cfg=stage_cfg("sim", "sim"),
+        job=job_spec(stage_cfg("sim", "sim")),
     log:
         "results/{scene}/logs/final_sim-{sim_id}-{step}.log",
     benchmark:
@@ -53,5 +56,5 @@ rule final_sim:
         mem_mb=mem_mb("final_sim"),
         runtime=runtime_min("final_sim"),
         gpu=gpu_count("final_sim"),
-    script:
-        "../scripts/final_sim.py"
+    shell:
+        STAGE_JOB
