@@ -169,3 +169,23 @@ def test_job_client_rejects_a_bad_spec(tmp_path):
     r = subprocess.run(_job_cmd("no_such_stage", {"input": {}, "output": {}, "cfg": {}}, str(tmp_path / "l.log")),
                        capture_output=True, text=True, env=env)
     assert r.returncode == 2 and "unknown stage 'no_such_stage'" in r.stderr
+
+
+def test_job_command_round_trip(tmp_path, monkeypatch):
+    """The rules' params.job: the spec survives the shell's quoting, and a spec too long for one
+    argument goes to a content-addressed file under .snakemake/physgs_jobs."""
+    import shlex
+
+    from physgs_steps import job as J
+
+    monkeypatch.chdir(tmp_path)
+    cfg = {"prompt": "it's a \"bear\" $HOME `x`", "n": 3, "E": 5e4}
+    argv = shlex.split(J.command("render", {"scene": "a b.ply"}, {"video": "v.mp4"}, cfg, {"enabled": True}, "py"))
+    assert argv[:4] == ["py", "-m", "physgs_steps.job", "render"]
+    assert J.read_spec(argv[4]) == {"input": {"scene": "a b.ply"}, "output": {"video": "v.mp4"}, "cfg": cfg,
+                                    "worker": {"enabled": True}}
+    big = {"items": ["x" * 100] * (J.SPEC_ARG_LIMIT // 100)}
+    argv = shlex.split(J.command("render", {}, {}, big))
+    assert argv[4].startswith("@") and Path(argv[4][1:]).parent == (tmp_path / ".snakemake" / "physgs_jobs").resolve()
+    assert J.read_spec(argv[4])["cfg"] == big
+    assert shlex.split(J.command("render", {}, {}, big))[4] == argv[4]  # the same spec, the same file

@@ -8,18 +8,49 @@ the standard library and ``physgs_steps.worker`` only, then hands the job to the
 worker (``worker.run_stage_job``), or, where no worker is wanted or none can be started, runs
 the stage in this process exactly as the ``script:`` adapter did.
 
-``SPEC`` is the rule's ``params.job``: JSON text ``{"input": {name: path}, "output": {name:
-path}, "cfg": {...}, "worker": {...}}`` (the job's named inputs and outputs, the stage's config
-subset, which is also the rule's ``params.cfg`` that Snakemake's rerun trigger compares, and
-the config's ``worker`` section), or ``@PATH`` of a file holding it where the text would be too
-long for one command-line argument.  ``LOG`` is the rule's ``log:`` file.
+``SPEC`` is JSON text ``{"input": {name: path}, "output": {name: path}, "cfg": {...},
+"worker": {...}}`` (the job's named inputs and outputs, the stage's config subset, which is
+also the rule's ``params.cfg`` that Snakemake's rerun trigger compares, and the config's
+``worker`` section), or ``@PATH`` of a file holding it where the text would be too long for one
+command-line argument.  ``LOG`` is the rule's ``log:`` file.  :func:`command` writes the whole
+command line (the rules' ``params.job``, run as ``{params.job} {log:q}``).
 """
 from __future__ import annotations
 
 import json
+import os
 import sys
+from pathlib import Path
 
 USAGE = "usage: python -m physgs_steps.job STAGE SPEC [LOG]  (SPEC: JSON text or @file; see the module docstring)"
+
+
+# one command-line argument may hold 128 KiB (MAX_ARG_STRLEN); longer specs go to a file
+SPEC_ARG_LIMIT = 60000
+SPEC_DIR = Path(".snakemake") / "physgs_jobs"
+
+
+def command(stage: str, inputs: dict, outputs: dict, cfg: dict, worker_cfg: dict | None = None,
+            python: str | None = None) -> str:
+    """The shell command of one job of ``stage`` (a stage rule's ``params.job``; the rule runs
+    ``{params.job} {log:q}``): this module under ``python`` (default: this interpreter, the one
+    Snakemake runs in, as a ``script:`` rule would use) with the job's spec, quoted for the shell.
+    A spec longer than SPEC_ARG_LIMIT is written to ``.snakemake/physgs_jobs/<sha1>.json``
+    (relative to the working folder, content-addressed) and passed as ``@path``."""
+    import hashlib
+    import shlex
+
+    text = json.dumps({"input": inputs, "output": outputs, "cfg": cfg, "worker": worker_cfg or {}},
+                      separators=(",", ":"), default=str)
+    if len(text) > SPEC_ARG_LIMIT:
+        path = (SPEC_DIR / f"{hashlib.sha1(text.encode()).hexdigest()}.json").resolve()
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(text)
+            os.replace(tmp, path)
+        text = f"@{path}"
+    return f"{shlex.quote(python or sys.executable)} -m physgs_steps.job {shlex.quote(stage)} {shlex.quote(text)}"
 
 
 def read_spec(arg: str) -> dict:

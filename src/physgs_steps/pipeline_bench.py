@@ -200,14 +200,25 @@ def _env(cache: Path, worker: bool) -> dict:
     return env
 
 
-def _jobs(wd: Path, target: str, with_metrics: bool) -> list[tuple[str, str | None]]:
+def _keep(jobs, with_metrics: bool, until: str | None = None) -> list[tuple[str, str | None]]:
+    """The jobs a benchmark run times: ``metrics`` only with ``with_metrics``; with ``until``
+    ("final_sim") none after the final simulation (where nothing can render, e.g. no gsplat)."""
+    jobs = [j for j in jobs if j[0] != "stage_report" and (with_metrics or j[0] != "metrics")]
+    if until == "final_sim":
+        jobs = [j for j in jobs if j[0] not in ("render", "metrics")]
+    elif until not in (None, "render", "metrics"):
+        raise ValueError(f"until must be final_sim, render or metrics, not {until!r}")
+    return jobs
+
+
+def _jobs(wd: Path, target: str, with_metrics: bool, until: str | None = None) -> list[tuple[str, str | None]]:
     from . import config as C
     from . import plan as P
 
     cfg = C.load_config(wd / "config.yaml")
     scene, abl = P.parse_target(target)
     jobs = P.make_plan(cfg, scene, abl).jobs()
-    return [j for j in jobs if j[0] != "stage_report" and (with_metrics or j[0] != "metrics")]
+    return _keep(jobs, with_metrics, until)
 
 
 def _children_cpu() -> float:
@@ -236,11 +247,11 @@ def _run(cmd: list[str], wd: Path, env: dict, log: Path, cpu: list | None = None
 
 # ============================================================================ structures
 def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path, with_metrics: bool = False,
-                  gpu_index: int = 0, gpu_baseline: float | None = None) -> dict:
+                  gpu_index: int = 0, gpu_baseline: float | None = None, until: str | None = None) -> dict:
     """One timed run of the whole pipeline of ``target`` in ``wd`` (outputs are recomputed).
     GPU memory is counted above ``gpu_baseline`` (MiB in use) when given, else above the level
     at the start of this run."""
-    jobs = _jobs(wd, target, with_metrics)
+    jobs = _jobs(wd, target, with_metrics, until)
     env = _env(cache, worker=structure == "worker")
     rows: list[dict] = []
     with GpuMemory(gpu_index, baseline=gpu_baseline) as mem:
@@ -259,7 +270,8 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
         elif structure == "inprocess":
             out = wd / ".chain.json"
             cmd = [sys.executable, "-m", "physgs_steps.pipeline_bench", "chain", target, "--config", "config.yaml",
-                   "--out", str(out)] + (["--with-metrics"] if with_metrics else [])
+                   "--out", str(out)] + (["--with-metrics"] if with_metrics else []) + \
+                (["--until", until] if until else [])
             _run(cmd, wd, env, log)
             for r in json.loads(out.read_text())["jobs"]:
                 rows.append({"stage": r["stage"], "step": r["step"], "seconds": r["seconds"],
@@ -272,7 +284,8 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
 
             scene, abl = P.parse_target(target)
             plan = P.make_plan(C.load_config(wd / "config.yaml"), scene, abl)
-            goal = plan.path("metrics") if with_metrics else plan.path("video")
+            goal = plan.path("final") if until == "final_sim" else plan.path("metrics") if with_metrics \
+                else plan.path("video")
             cmd = [sys.executable, "-m", "snakemake", "--cores", "1", "--forceall", "--configfile", "config.yaml",
                    "--", goal]  # the worker is switched by PHYSGS_WORKER (_env)
             _run(cmd, wd, env, log)
@@ -358,7 +371,7 @@ def _simulate_seconds(wd: Path, plan, name: str, step: str | None) -> float | No
 
 def measure(target: str = "bear", *, structures=STRUCTURES, n_gaussians: int | None = None,
             overrides: dict | None = None, config=None, workdir=None, cold: bool = True, warm: bool = True,
-            with_metrics: bool = False, out=None, log=print) -> dict:
+            with_metrics: bool = False, out=None, log=print, until: str | None = None) -> dict:
     """Time the whole pipeline of ``target`` in each structure, cold then warm (module docstring).
 
     Every run recomputes every stage in one scratch folder; each structure starts from its own
@@ -369,8 +382,8 @@ def measure(target: str = "bear", *, structures=STRUCTURES, n_gaussians: int | N
     scene = target.split("/")[0]
     tmp = Path(workdir or tempfile.mkdtemp(prefix="physgs-bench-"))
     wd = make_workdir(tmp, scene, n_gaussians, overrides, config)
-    result = {"target": target, "n_gaussians": n_gaussians, "overrides": overrides or {}, "device": _device(),
-              "runs": [], "workdir": str(wd)}
+    result = {"target": target, "n_gaussians": n_gaussians, "overrides": overrides or {}, "until": until,
+              "device": _device(), "runs": [], "workdir": str(wd)}
     gpu0 = GpuMemory()
     base = gpu0._read() if gpu0.available else None  # before any run (and any warm worker)
     for structure in structures:
@@ -380,9 +393,9 @@ def measure(target: str = "bear", *, structures=STRUCTURES, n_gaussians: int | N
             shutil.rmtree(cache)
         blog = wd / f"bench-{structure}.log"
         if not cold:  # warm the kernel cache first, untimed
-            run_structure(structure, wd, target, cache, blog, with_metrics, gpu_baseline=base)
+            run_structure(structure, wd, target, cache, blog, with_metrics, gpu_baseline=base, until=until)
         for temp in (["cold"] if cold else []) + (["warm"] if warm else []):
-            r = run_structure(structure, wd, target, cache, blog, with_metrics, gpu_baseline=base)
+            r = run_structure(structure, wd, target, cache, blog, with_metrics, gpu_baseline=base, until=until)
             r["temperature"] = temp
             result["runs"].append(r)
             log(f"{structure:9s} {temp:4s}: {r['total_seconds']:7.2f} s, substeps {r['substep_seconds']} s, "
@@ -477,13 +490,13 @@ def _plan(config: str, target: str):
     return P.make_plan(C.load_config(config), scene, abl)
 
 
-def _chain(target: str, config: str, out: str, with_metrics: bool) -> None:
+def _chain(target: str, config: str, out: str, with_metrics: bool, until: str | None = None) -> None:
     """Every job of ``target`` in this process, in order (recomputed), with wall-clock marks."""
     from .cli import _stage_fn, stage_io
     from .runtime import run_stage
 
     plan = _plan(config, target)
-    jobs = [j for j in plan.jobs() if j[0] != "stage_report" and (with_metrics or j[0] != "metrics")]
+    jobs = _keep(plan.jobs(), with_metrics, until)
     rows = []
     for name, step in jobs:
         ins, outs, scfg = stage_io(plan, name, step)
@@ -537,11 +550,14 @@ def main(argv=None) -> int:
             p.add_argument("--no-cold", action="store_true")
             p.add_argument("--no-warm", action="store_true")
             p.add_argument("--with-metrics", action="store_true")
+            p.add_argument("--until", choices=("final_sim",), default=None,
+                           help="stop after the final simulation (e.g. where nothing can render)")
     c = sub.add_parser("chain", help=argparse.SUPPRESS)
     c.add_argument("target")
     c.add_argument("--config", required=True)
     c.add_argument("--out", required=True)
     c.add_argument("--with-metrics", action="store_true")
+    c.add_argument("--until", default=None)
     t = sub.add_parser("twice", help=argparse.SUPPRESS)
     t.add_argument("target")
     t.add_argument("stage")
@@ -550,7 +566,7 @@ def main(argv=None) -> int:
     t.add_argument("--out", required=True)
     a = ap.parse_args(argv)
     if a.cmd == "chain":
-        _chain(a.target, a.config, a.out, a.with_metrics)
+        _chain(a.target, a.config, a.out, a.with_metrics, a.until)
         return 0
     if a.cmd == "twice":
         _twice(a.target, a.stage, a.step, a.config, a.out)
@@ -561,7 +577,7 @@ def main(argv=None) -> int:
     else:
         res = measure(a.target, structures=[s for s in a.structures.split(",") if s], n_gaussians=a.n_gaussians,
                       overrides=overrides, config=a.config, workdir=a.workdir, cold=not a.no_cold,
-                      warm=not a.no_warm, with_metrics=a.with_metrics, out=a.out)
+                      warm=not a.no_warm, with_metrics=a.with_metrics, out=a.out, until=a.until)
         print(table(res))
     if a.out:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)

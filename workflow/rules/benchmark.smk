@@ -28,7 +28,7 @@ rule bench_stress:
         index=r"[0-9]+",
     params:
         cfg=bench_stress_cfg,
-        job=job_spec(bench_stress_cfg),
+        job=job_command("bench_stress", bench_stress_cfg),
     log:
         "results/{scene}/logs/bench_stress-{stress_id}-{index}.log",
     benchmark:

@@ -136,35 +136,19 @@ def runtime_min(stage):
 
 
 # ---- the stage rules' command (src/physgs_steps/job.py)
-# Every stage rule is a `shell:` rule running STAGE_JOB: a client that imports no Snakemake and
-# no numpy and hands the job to the warm stage worker (worker.py), or runs the stage in its own
-# process where no worker is wanted. Its params.job (job_spec) is derived from the job's input
-# and output, so Snakemake's params rerun trigger compares params.cfg alone, as before.
-PHYSGS_PY = sys.executable  # the interpreter of this Snakemake, as `script:` rules would use
-STAGE_JOB = "{PHYSGS_PY:q} -m physgs_steps.job {rule} {params.job:q} {log:q}"
-JOB_SPEC_ARG_LIMIT = 60000  # longer specs go to a file (one command-line argument is at most 128 KiB)
+# Each stage's job runs `{params.job} {log:q}`: a client that imports no Snakemake and no numpy
+# and hands the job to the warm stage worker (worker.py), or runs the stage in its own process
+# where no worker is wanted. params.job is derived from the job's input and output, so
+# Snakemake's params rerun trigger compares params.cfg alone, as with the former script: rules.
+STAGE_JOB = "{params.job} {log:q}"
 
 
-def job_spec(cfg):
-    """params.job of a stage rule whose params.cfg is ``cfg`` (a function of the wildcards):
-    the job's named inputs and outputs, the cfg and the config's `worker` section as JSON."""
-    import hashlib
-    import json
+def job_command(stage, cfg):
+    """params.job of a stage rule whose params.cfg is ``cfg`` (a function of the wildcards)."""
+    from physgs_steps.job import command
 
-    def spec(wildcards, input, output):
-        text = json.dumps({"input": dict(input.items()), "output": dict(output.items()), "cfg": cfg(wildcards),
-                           "worker": config.get("worker") or {}}, separators=(",", ":"), default=str)
-        if len(text) <= JOB_SPEC_ARG_LIMIT:
-            return text
-        path = Path(".snakemake/physgs_jobs") / f"{hashlib.sha1(text.encode()).hexdigest()}.json"
-        if not path.exists():
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp")
-            tmp.write_text(text)
-            os.replace(tmp, path)
-        return "@" + str(path.resolve())
-
-    return spec
+    return lambda wildcards, input, output: command(stage, dict(input.items()), dict(output.items()),
+                                                    cfg(wildcards), config.get("worker"))
 
 
 def target_cfg(stage, wildcard="target"):

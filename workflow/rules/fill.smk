@@ -6,7 +6,7 @@ rule cluster:
         clusters="results/{scene}/cluster/{cluster_id}/clusters.json",
     params:
         cfg=stage_cfg("cluster", "cluster"),
-        job=job_spec(stage_cfg("cluster", "cluster")),
+        job=job_command("cluster", stage_cfg("cluster", "cluster")),
     log:
         "results/{scene}/logs/cluster-{cluster_id}.log",
     benchmark:
@@ -29,7 +29,7 @@ rule fill:
         report="results/{scene}/fill/{fill_id}/fill_report.json",
     params:
         cfg=stage_cfg("fill", "fill"),
-        job=job_spec(stage_cfg("fill", "fill")),
+        job=job_command("fill", stage_cfg("fill", "fill")),
     log:
         "results/{scene}/logs/fill-{fill_id}.log",
     benchmark:

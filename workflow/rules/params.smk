@@ -9,7 +9,7 @@ rule vlm_params:
         params_id=r"(prior|qwen3vl|openai)-[0-9a-f]+",
     params:
         cfg=stage_cfg("params", "params"),
-        job=job_spec(stage_cfg("params", "params")),
+        job=job_command("vlm_params", stage_cfg("params", "params")),
     log:
         "results/{scene}/logs/vlm_params-{params_id}.log",
     benchmark:
@@ -32,7 +32,7 @@ rule pinned_params:
         params_id=r"pinned-[0-9a-f]+",
     params:
         cfg=stage_cfg("params", "params"),
-        job=job_spec(stage_cfg("params", "params")),
+        job=job_command("pinned_params", stage_cfg("params", "params")),
     log:
         "results/{scene}/logs/pinned_params-{params_id}.log",
     benchmark:

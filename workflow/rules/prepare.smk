@@ -6,7 +6,7 @@ rule prepare:
         transform="results/{scene}/transform.json",
     params:
         cfg=target_cfg("prepare", "scene"),
-        job=job_spec(target_cfg("prepare", "scene")),
+        job=job_command("prepare", target_cfg("prepare", "scene")),
     log:
         "results/{scene}/logs/prepare.log",
     benchmark:

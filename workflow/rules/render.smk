@@ -7,7 +7,7 @@ rule render:
         report="results/{target}/render.json",
     params:
         cfg=target_cfg("render"),
-        job=job_spec(target_cfg("render")),
+        job=job_command("render", target_cfg("render")),
     log:
         "results/{target}/logs/render.log",
     benchmark:
@@ -29,7 +29,7 @@ rule metrics:
         metrics="results/{target}/metrics.json",
     params:
         cfg=target_cfg("metrics"),
-        job=job_spec(target_cfg("metrics")),
+        job=job_command("metrics", target_cfg("metrics")),
     log:
         "results/{target}/logs/metrics.log",
     benchmark:

@@ -7,7 +7,7 @@ rule stage_report:
         table="results/{target}/stage_report.tsv",
     params:
         cfg=lambda w: {"jobs": report_jobs(w)},
-        job=job_spec(lambda w: {"jobs": report_jobs(w)}),
+        job=job_command("stage_report", lambda w: {"jobs": report_jobs(w)}),
     log:
         "results/{target}/logs/stage_report.log",
     benchmark:

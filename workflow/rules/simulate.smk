@@ -5,7 +5,7 @@ rule forward_sim:
         keyframes="results/{scene}/sim/{sim_id}/{step}/forward.h5",
     params:
         cfg=stage_cfg("sim", "sim"),
-        job=job_spec(stage_cfg("sim", "sim")),
+        job=job_command("forward_sim", stage_cfg("sim", "sim")),
     log:
         "results/{scene}/logs/forward_sim-{sim_id}-{step}.log",
     benchmark:
@@ -27,7 +27,7 @@ rule bgdo_update:
         step=r"it[1-9][0-9]*-[0-9a-f]+",
     params:
         cfg=stage_cfg("sim", "bgdo"),
-        job=job_spec(stage_cfg("sim", "bgdo")),
+        job=job_command("bgdo_update", stage_cfg("sim", "bgdo")),
     log:
         "results/{scene}/logs/bgdo_update-{sim_id}-{step}.log",
     benchmark:
@@ -47,7 +47,7 @@ rule final_sim:
         frames="results/{scene}/sim/{sim_id}/{step}/final.h5",
     params:
         cfg=stage_cfg("sim", "sim"),
-        job=job_spec(stage_cfg("sim", "sim")),
+        job=job_command("final_sim", stage_cfg("sim", "sim")),
     log:
         "results/{scene}/logs/final_sim-{sim_id}-{step}.log",
     benchmark:
