@@ -91,7 +91,10 @@ def main(argv=None) -> int:
     sa = sub.add_parser("stages", help="run every stage of a target in order (skips existing outputs unless --force)")
     sa.add_argument("target")
     sa.add_argument("--force", action="store_true")
-    sa.add_argument("--summary", default=None, help="write per-stage seconds and memory to this JSON file")
+    sa.add_argument("--summary", default=None, help="write per-stage seconds and memory to this JSON file "
+                    "(rewritten after every stage)")
+    sa.add_argument("--until", choices=STAGES, default=None,
+                    help="stop after the last job of this stage (e.g. final_sim where nothing can render)")
     sub.add_parser("check", help="list every problem of the global config and of every scene file (exit 1 if any)")
     sb = sub.add_parser("bench", help="pipeline benchmarks (physgs bench pipeline|startup ...; see pipeline_bench.py)",
                         add_help=False)
@@ -116,6 +119,12 @@ def main(argv=None) -> int:
                 print(name, step or "")
             return 0
         jobs = [(args.stage, args.step)] if args.cmd == "stage" else [j for j in plan.jobs() if j[0] != "stage_report"]
+        until = getattr(args, "until", None)
+        if until:
+            last = [i for i, j in enumerate(jobs) if j[0] == until]
+            if not last:
+                raise PhysGSError(f"--until {until}: target {args.target} has no {until} job")
+            jobs = jobs[:last[-1] + 1]
         summary = []
         for name, step in jobs:
             ins, outs, scfg = stage_io(plan, name, step)
@@ -125,6 +134,8 @@ def main(argv=None) -> int:
             fn, imp = timed_stage_function(name, _stage_fn)
             res = run_stage(name, fn, ins, outs, scfg, log, import_seconds=imp)
             summary.append({"stage": name, "step": step, **{k: v for k, v in res.items() if isinstance(v, (int, float, str))}})
+            if getattr(args, "summary", None):
+                write_json(args.summary, summary)
         if getattr(args, "summary", None):
             write_json(args.summary, summary)
         return 0
