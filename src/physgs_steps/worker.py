@@ -5,9 +5,10 @@ interpreter, torch (seconds), Taichi's start, a CUDA context, loading every simu
 from Taichi's offline cache (seconds: the cache holds LLVM IR, code generation runs again in
 every process) and gsplat's extension, for a stage whose own work may take a second.  The
 worker pays that once: Snakemake keeps its DAG, its cached artifacts, its rerun triggers and
-its ``benchmark:`` files, but the job's process is a thin client that hands the job
-(stage, inputs, outputs, config, log path, working folder) to a warm process over a UNIX
-socket and relays the stage's log lines and exit status.  The stage runs there exactly as it
+its ``benchmark:`` files, but the job's process is a thin client (``physgs_steps.job``, the
+stage rules' command, standard library only) that hands the job (stage, inputs, outputs,
+config, log path, working folder) to a warm process over a UNIX socket and relays the stage's
+log lines and exit status.  The stage runs there exactly as it
 would in the job (``runtime.run_stage``: same outputs, same atomic writes, same errors).
 
 Which jobs use it: ``worker.stages`` (default: every stage but ``metrics`` and the report
