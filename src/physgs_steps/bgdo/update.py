@@ -11,6 +11,7 @@ import torch
 
 from .. import materials_kb
 from ..errors import ConfigError, SimulationError
+from ..mpm.material import wave_modulus
 from .torch_step import GridSpec, InstanceTable, pseudo_step, svd3
 
 G_REF = 9.81       # m/s^2: the gravity of the per-material delta_target (whatever the scene's gravity)
@@ -259,8 +260,9 @@ def bgdo_signals(keyframes, log_E: torch.Tensor, table: InstanceTable, grid: Gri
 
 
 def wave_speeds(instances: list[dict], rigid: list | None = None) -> np.ndarray:
-    """P-wave speed sqrt((lam + 2 mu) / rho) in m/s per instance (label order)  # [K]; 0 for the
-    instances flagged in ``rigid`` (rigid bodies carry no elastic waves)."""
+    """Wave speed sqrt(M / rho) in m/s per instance (label order)  # [K], M the modulus of its
+    elasticity model's fastest wave (``mpm.material.wave_modulus``: P-wave, or the sound of a
+    fluid or volume model); 0 for the instances flagged in ``rigid`` (no elastic waves)."""
     by_label = {int(i["label"]): i for i in instances}
     out = []
     for k in range(len(by_label)):
@@ -269,9 +271,7 @@ def wave_speeds(instances: list[dict], rigid: list | None = None) -> np.ndarray:
             out.append(0.0)
             continue
         E, nu, rho = float(i["E"]), float(i["nu"]), float(i["density"])
-        mu = E / (2 * (1 + nu))
-        lam = E * nu / ((1 + nu) * (1 - 2 * nu))
-        out.append(math.sqrt((lam + 2 * mu) / rho))
+        out.append(math.sqrt(wave_modulus(str(i.get("elasticity", "")), E, nu) / rho))
     return np.asarray(out)
 
 

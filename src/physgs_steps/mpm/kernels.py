@@ -302,16 +302,29 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
                             pushed_out = pushed + dn_f * n
                 elif kind < 0.5:
                     out = vc + q * u
-                elif kind < 1.5 or un < 0.0:
-                    ut = u - un * n
-                    ts = ut
-                    if un < 0.0:
-                        vt = ut.norm()
-                        if vt > 1e-20:
-                            ts = ut * (ti.max(0.0, vt + un * fric) / vt)
-                    out = vc + ts + q * (ut - ts) + q * un * n
                 else:
-                    out = vm
+                    # behind a slip/separate surface: the normal part on the line through v_c and
+                    # the mirror's (separate, mirror leaving: the mirror's own normal velocity)
+                    target = q * un
+                    if kind >= 1.5 and un >= 0.0:
+                        target = un
+                    if fric > 0.0:
+                        # rough: the node keeps its own tangential velocity less mu times its own
+                        # push, as a front node does.  The ghost row carries 18-65 % of the
+                        # surface's reaction (B-spline stress transfer of the lowest layers); with
+                        # the mirror's tangential velocity (2 cells into a sheared body, faster
+                        # than the contact) it charged no friction for it, or drove the body
+                        # (validation incline_friction notes)
+                        own = gv0 - vc
+                        own_n = own.dot(n)
+                        ot = own - own_n * n
+                        dn_own = target - own_n
+                        vt = ot.norm()
+                        if dn_own > 0.0 and vt > 1e-20:
+                            ot *= ti.max(0.0, vt - fric * dn_own) / vt
+                        out = vc + ot + target * n
+                    else:
+                        out = vc + (u - un * n) + target * n
                 done = 1
         if done == 0:
             out = node_rule(gv, n, vc, kind, fric)

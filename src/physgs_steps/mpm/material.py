@@ -39,6 +39,26 @@ def lame(E: float, nu: float) -> tuple[float, float]:
     return mu, lam
 
 
+VOLUME_GAMMA = 2.0  # Mie-Grueneisen exponent of the volume model (materials.Volume)
+
+
+def wave_modulus(elasticity: str, E: float, nu: float) -> float:
+    """The modulus M [Pa] of the fastest wave the elasticity model carries at rest, so that its
+    speed is ``sqrt(M / rho)``: the P-wave modulus ``lam + 2 mu`` of the solid models, the
+    bulk modulus of the models that carry no shear stress.  ``fluid`` (tau = lam J (J - 1) I,
+    pressure -lam (J - 1)): ``lam``; ``volume`` (tau = kappa (J - J^(1 - gamma)) I, kappa =
+    lam + 2 mu / 3): ``gamma kappa``.  The P-wave modulus is wrong for both: it counts a shear
+    stiffness a fluid does not have (water, nu 0.3: 1.53x its sound speed, so 1.53x the
+    substeps a frame it needs; validation ``dam_break``) and misses the volume model's
+    gamma (nu 0.49: 0.72x, so the CFL number ran 1.39x over)."""
+    mu, lam = lame(E, nu)
+    if elasticity == "fluid":
+        return lam
+    if elasticity == "volume":
+        return VOLUME_GAMMA * (lam + 2.0 * mu / 3.0)
+    return lam + 2.0 * mu
+
+
 def dp_alpha(friction_angle_deg: float) -> float:
     """Drucker-Prager cone coefficient ``sqrt(2/3) 2 sin(phi) / (3 - sin(phi))``."""
     s = math.sin(math.radians(friction_angle_deg))
@@ -128,9 +148,10 @@ class Material:
 
     @property
     def wave_speed(self) -> float:
-        """P-wave speed ``sqrt((lam + 2 mu) / rho)`` in m/s of the elastic parameters."""
-        mu, lam = lame(self.E, self.nu)
-        return math.sqrt((lam + 2.0 * mu) / self.density)
+        """Speed (m/s) of the fastest elastic wave of the instance's elasticity model at rest,
+        ``sqrt(M / rho)`` with M from :func:`wave_modulus` (the P-wave speed of a solid, the
+        sound speed of ``fluid`` and ``volume``)."""
+        return math.sqrt(wave_modulus(self.elasticity, self.E, self.nu) / self.density)
 
     @property
     def cfl_speed(self) -> float:
@@ -139,9 +160,10 @@ class Material:
         return 0.0 if self.rigid else self.wave_speed
 
     def max_E_for_wave_speed(self, c: float) -> float:
-        """The largest E [Pa] whose wave speed is at most ``c`` m/s (same nu and density)."""
-        m = (1.0 - self.nu) / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))  # (lam + 2 mu) / E
-        return self.density * c * c / m
+        """The largest E [Pa] whose wave speed is at most ``c`` m/s (same model, nu and density;
+        inf for a model without waves: a fluid at nu = 0)."""
+        m = wave_modulus(self.elasticity, 1.0, self.nu)  # M / E
+        return self.density * c * c / m if m > 0 else math.inf
 
     def table_row(self) -> np.ndarray:
         """The kernel parameter row, [N_PARAMS] f32 in the order of PARAM_COLUMNS."""

@@ -24,10 +24,9 @@ from __future__ import annotations
 import taichi as ti
 
 from .material import (COL, DEFAULT_FRACTURE_SOFTENING, N_PARAMS, PARAM_COLUMNS, PRESET_NAMES, RIGID_KEY,  # noqa: F401
-                       RIGID_MODELS, Material, dp_alpha, lame, preset)  # noqa: F401
+                       RIGID_MODELS, VOLUME_GAMMA, Material, dp_alpha, lame, preset)  # noqa: F401
 
 LOG_FLOOR = 1e-6  # logs of singular values and of J use log(max(s, LOG_FLOOR))
-VOLUME_GAMMA = 2.0  # Mie-Grueneisen exponent of the volume model
 _Q_YIELD_STRESS, _Q_DP_ALPHA, _Q_COHESION, _Q_J_MIN, _Q_J_MAX, _Q_SIN_PHI = (
     COL["yield_stress"], COL["dp_alpha"], COL["cohesion"], COL["j_min"], COL["j_max"], COL["sin_phi"])
 _Q_FRACTURE_STRAIN, _Q_FRACTURE_SOFTENING = COL["fracture_strain"], COL["fracture_softening"]

@@ -596,8 +596,8 @@ class MPMSolver:
 
     # ------------------------------------------------------------------ helpers
     def wave_speeds(self) -> np.ndarray:
-        """[K] the wave speed of each material that limits the time step, m/s: the P-wave speed
-        sqrt((lam + 2 mu) / rho) of a deformable instance, 0 for a rigid or fixed one (no
+        """[K] the wave speed of each material that limits the time step, m/s: ``Material.wave_speed``
+        of a deformable instance (its model's fastest wave: P-wave, or sound for fluid/volume), 0 for a rigid or fixed one (no
         elastic waves; its particles' speeds still count through v_max)."""
         return np.array([m.cfl_speed for m in self.materials])
 

@@ -3,7 +3,9 @@
 Adaptive (docs/CONTRACTS.md): ``dt = cfl * dx / max(c_max, v_max)`` limited to
 ``[dt_min, frame_dt]``; ``n = ceil(frame_dt / dt)`` capped at ``max_substeps``; then
 ``dt = frame_dt / n`` so that frames fall on ``k / fps`` exactly.  ``c_max`` is the largest
-P-wave speed ``sqrt((lam + 2 mu) / rho)`` of the scene's deformable materials (a rigid
+wave speed of the scene's deformable materials, ``Material.wave_speed``: the P-wave speed
+``sqrt((lam + 2 mu) / rho)`` of a solid, the sound speed of ``fluid`` (``sqrt(lam / rho)``)
+and ``volume`` (``sqrt(2 (lam + 2 mu / 3) / rho)``) models (a rigid
 instance carries no elastic waves: ``Material.cfl_speed`` is 0; ``MPMSolver.wave_speeds``),
 ``v_max`` the largest particle speed at the start of the frame, rigid bodies included.  Fixed: ``n = ceil(frame_dt / substep_dt)``,
 ``dt = frame_dt / n``.

@@ -92,14 +92,24 @@ def ladder(scale: str, grids: dict[str, Sequence[int]], *, ppc: dict[str, Sequen
 # ============================================================================ geometry
 def lattice(lo: Sequence[float], hi: Sequence[float], spacing: float, jitter: float = 0.0,
             seed: int = 0) -> np.ndarray:
-    """Points of a regular lattice filling the box [lo, hi] (metres), cell-centred with
-    ``spacing``; optional uniform jitter (fraction of the spacing).  Returns x [P, 3]."""
+    """Points of a cell-centred lattice filling the box [lo, hi] (metres) exactly: along each
+    axis ``max(1, round(extent / spacing))`` points at the spacing that divides the extent
+    (:func:`fitted_spacing`), so the particles' cells tile the box whatever ``spacing`` is;
+    optional uniform jitter (fraction of the spacing).  Returns x [P, 3]."""
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    axes = [np.arange(a + spacing / 2, b - 1e-9 * spacing, spacing) for a, b in zip(lo, hi)]
+    hs = fitted_spacing(lo, hi, spacing)
+    axes = [a + (np.arange(int(round((b - a) / s))) + 0.5) * s for a, b, s in zip(lo, hi, hs)]
     x = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     if jitter > 0:
-        x = x + np.random.default_rng(seed).uniform(-jitter, jitter, x.shape) * spacing
+        x = x + np.random.default_rng(seed).uniform(-jitter, jitter, x.shape) * hs
     return x
+
+
+def fitted_spacing(lo: Sequence[float], hi: Sequence[float], spacing: float) -> np.ndarray:
+    """[3] the lattice spacing per axis that fills [lo, hi] exactly with the count nearest to
+    ``spacing`` (at least one point per axis)."""
+    ext = np.asarray(hi, float) - np.asarray(lo, float)
+    return ext / np.maximum(1, np.round(ext / spacing))
 
 
 @dataclass
@@ -121,8 +131,8 @@ class Scene:
         h = domain_size / setting.n_grid / setting.per_axis
         x = lattice(lo, hi, h, jitter)
         v = velocity(x) if velocity is not None else None
-        return cls([material], x, np.full(len(x), h ** 3), np.zeros(len(x), int), domain_size,
-                   dynamics if dynamics is not None else Dynamics.free(), v)
+        return cls([material], x, np.full(len(x), float(np.prod(fitted_spacing(lo, hi, h)))), np.zeros(len(x), int),
+                   domain_size, dynamics if dynamics is not None else Dynamics.free(), v)
 
     @property
     def mass(self) -> np.ndarray:
