@@ -42,7 +42,14 @@ Per substep, after the MPM kernel:
 2. **contact** with the colliders (colliders.py: ground, surface colliders, domain walls,
    level sets of static geometry) and cuboids: every particle closer than ``CONTACT_BAND dx``
    to an obstacle (or inside an active cuboid) is a contact point (normal n, depth phi,
-   collider velocity v_c, kind, friction); of the points of one body, obstacle and bin (a
+   collider velocity v_c, kind, friction), all at the particles' positions in the pose at the
+   start of the substep, c + R r0, where the solve and the position passes start from.  (They
+   were found at x, which G2P has already moved by dt v: every contact saw a phantom
+   penetration of one substep of motion, g dt^2 for a body at rest, the position pass lifted
+   the body out of it, and a resting body hopped, V_z between 0 and g dt every other substep
+   with twice its weight on the contacts of one of them; the parallel solve's rows switched
+   between one and two layers of particles: tests/test_mpm_rigid.py
+   ``test_resting_block_does_not_hop``.)  Of the points of one body, obstacle and bin (a
    cube of ``CT_BIN`` cells) only the deepest is kept (looked up among the chunk's last
    ``CT_MERGE_BACK`` rows: the particles are stored sorted by cell), so a face resting on the
    ground has one contact per bin, not one per particle.  The support polygon is that of the
@@ -276,11 +283,13 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
     n_obst, n_slots = col.n_obst, col.n_slots
 
     @ti.kernel
-    def reduce(x: K.V1, v: K.V1, C: K.M1, p_mass: K.S1, rb_p: K.I1, rb_b: K.I1, rb_r0: K.V1, body_R: M1d,
-               part: S3d, ct: K.S3, ct_count: K.I1, dyn: K.S2, lvl_phi: K.S3, lvl_id: K.I3, lvl_rows: K.S2,
-               t: ti.f32, dx: ti.f32, wall: ti.f32, G: ti.i32):
+    def reduce(v: K.V1, C: K.M1, p_mass: K.S1, rb_p: K.I1, rb_b: K.I1, rb_r0: K.V1, body_c: V1d,
+               body_R: M1d, part: S3d, ct: K.S3, ct_count: K.I1, dyn: K.S2, lvl_phi: K.S3, lvl_id: K.I3,
+               lvl_rows: K.S2, t: ti.f32, dx: ti.f32, wall: ti.f32, G: ti.i32):
         """Per chunk: momentum and angular momentum sums of each body and its number of contact
-        rows (part [T, B, 7]), and the contact candidates (ct [T, cap, CT_WIDTH], ct_count [T])."""
+        rows (part [T, B, 7]), and the contact candidates (ct [T, cap, CT_WIDTH], ct_count [T]),
+        found at the particles' positions in the pose at the start of the substep, c + R r0 (not
+        at x, which G2P has already moved by dt v: module docs "contact")."""
         T = part.shape[0]
         B = part.shape[1]
         Pr = rb_p.shape[0]
@@ -304,7 +313,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                 for q in ti.static(range(3)):
                     part[c, b, q] += m * vp[q]
                     part[c, b, 3 + q] += ang[q]
-                xp = x[p]
+                xp = ti.cast(body_c[b] + r, ti.f32)  # where the contact solve starts from (advance: d_pos)
                 ci = ti.min(ti.max(ti.cast(ti.floor(xp * (inv_dx / CT_BIN)), ti.i32), 0), G - 1)
                 cell = ti.cast((ci[0] * G + ci[1]) * G + ci[2], ti.f32)  # exact in f32 up to G = 256
                 for s in range(n_slots):

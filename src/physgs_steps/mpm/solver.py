@@ -487,7 +487,7 @@ class MPMSolver:
                         float(b.gravity[2]), float(damp), self._cell_start)
         if self.rigid is not None:
             rb, kr = self.rigid, self._kr
-            kr.reduce(self.x, self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_R, rb.part, rb.ct,
+            kr.reduce(self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R, rb.part, rb.ct,
                       rb.ct_count, self._dyn, self._lvl_phi, self._lvl_id, self._lvl_rows, float(self.time),
                       float(self.dx), float(b.wall_margin), self.n_grid)
             rb.advance(kr, dt)
