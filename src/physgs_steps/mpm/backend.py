@@ -106,3 +106,103 @@ def current_arch() -> str | None:
     """The arch of the live runtime started here, or None."""
     alive = _state["prog"] is not None and _current_prog() is _state["prog"]
     return _state["arch"] if alive else None
+
+
+def fast_launch_enabled() -> bool:
+    """Whether :class:`Launcher` skips Taichi's per-call argument processing (on unless
+    PHYSGS_TI_FAST_LAUNCH=0)."""
+    return os.environ.get("PHYSGS_TI_FAST_LAUNCH", "1") != "0"
+
+
+class Launcher:
+    """Calls one Taichi kernel whose array arguments rarely change, without Taichi's per-call
+    argument processing.
+
+    A Taichi 1.7 kernel call in Python works out the compiled instance from every argument
+    (type, dtype, dimensions, layout: ``TaichiCallableTemplateMapper.lookup``) and checks each
+    argument against its annotation before the launch, about 15-20 us per ndarray argument on
+    the 2-core CPU machine: the MPM substep's four kernels (substep, rigid reduce, advance,
+    scatter) take 80 arguments, about 1.3 ms of an 8.5 ms duck_stone substep.  A Launcher makes
+    the first call (and any call whose arrays are not the same objects, or whose template
+    arguments differ, as before) through Taichi, keeps the compiled instance Taichi chose and
+    the argument slots, and afterwards only builds the launch context: the arrays' handles, the
+    scalars, the launch.  The compiled code and the arguments it gets are the same, so results
+    are bitwise those of the plain call (tests/test_mpm_solver.py).  ``PHYSGS_TI_FAST_LAUNCH=0``
+    turns it off; on any Taichi without the internals it uses, it falls back to the plain call.
+    """
+
+    def __init__(self, kernel):
+        self.kernel = kernel
+        self._plan = None  # (arrays, templates, compiled kernel, ndarray slots, scalar setters)
+        self._broken = False
+
+    def __call__(self, *args):
+        plan = self._plan
+        if plan is not None:
+            arrays, templates, t_kernel, nd_slots, sc_slots = plan
+            same = True
+            for i, a in arrays:
+                if args[i] is not a:
+                    same = False
+                    break
+            if same:
+                for i, val in templates:
+                    if args[i] != val:
+                        same = False
+                        break
+            if same:
+                ctx = t_kernel.make_launch_context()
+                for i, idx, arr in nd_slots:
+                    ctx.set_arg_ndarray(idx, arr)
+                for i, idx, kind in sc_slots:
+                    v = args[i]
+                    if kind == 0:
+                        ctx.set_arg_float(idx, float(v))
+                    elif kind == 1:
+                        ctx.set_arg_int(idx, int(v))
+                    else:
+                        ctx.set_arg_uint(idx, int(v))
+                prog = _current_prog()
+                prog.launch_kernel(prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel), ctx)
+                return None
+        out = self.kernel(*args)
+        if not self._broken and fast_launch_enabled():
+            try:
+                self._plan = self._make_plan(args)
+            except Exception:  # pragma: no cover - Taichi internals moved: plain calls from now on
+                self._plan, self._broken = None, True
+        return out
+
+    def _make_plan(self, args):
+        from taichi.lang import _ndarray
+        from taichi.lang.enums import AutodiffMode
+        from taichi.lang.util import cook_dtype
+        from taichi.types import ndarray_type, primitive_types, template
+        from taichi.types.utils import is_signed
+
+        primal = self.kernel._primal
+        if primal.return_type is not None or primal.autodiff_mode != AutodiffMode.NONE:
+            return None
+        key = primal.ensure_compiled(*args)
+        t_kernel = primal.compiled_kernels[key]
+        arrays, templates, nd_slots, sc_slots = [], [], [], []
+        n_templates = 0
+        for i, (val, arg) in enumerate(zip(args, primal.arguments)):
+            need = arg.annotation
+            if isinstance(need, template):
+                n_templates += 1
+                templates.append((i, val))
+                continue
+            idx = (i - n_templates,)
+            if isinstance(need, ndarray_type.NdarrayType) and isinstance(val, _ndarray.Ndarray):
+                if val.grad is not None:
+                    return None
+                arrays.append((i, val))
+                nd_slots.append((i, idx, val.arr))
+            elif id(need) in primitive_types.real_type_ids and isinstance(val, (float, int)):
+                sc_slots.append((i, idx, 0))
+            elif id(need) in primitive_types.integer_type_ids and isinstance(val, int):
+                sc_slots.append((i, idx, 1 if is_signed(cook_dtype(need)) else 2))
+            else:
+                return None  # an argument kind the fast path does not handle: plain calls
+        return tuple(arrays), tuple(templates), t_kernel, tuple(nd_slots), tuple(sc_slots)

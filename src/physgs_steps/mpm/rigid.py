@@ -133,6 +133,7 @@ import numpy as np
 import taichi as ti
 
 from . import kernels as K
+from .backend import Launcher
 
 CONTACT_BAND = 1.0   # cells: particles closer than this to an obstacle are contact candidates
 PGS_ITERS = 12
@@ -678,6 +679,7 @@ class RigidBodies:
         self.ct = ti.ndarray(ti.f32, (T, cap, CT_WIDTH))
         self.acc = ti.ndarray(ti.f32, (T, cap, 4))
         self.ct_count = ti.ndarray(ti.i32, T)
+        self._launch = None  # the contact solve's backend.Launcher (advance)
         if solve == "jacobi":  # advance_jacobi's scratch
             self.work = ti.ndarray(ti.f64, (self.n_bodies, _W_WIDTH))
             self.jac = ti.ndarray(ti.f64, (self.n_bodies, JACOBI_ITERS, 6))
@@ -688,11 +690,14 @@ class RigidBodies:
         """Solve the contacts and move the bodies (``kr``: :func:`build`'s kernels)."""
         args = (self.part, self.ct, self.ct_count, self.acc, self.body_c, self.body_R, self.body_V, self.body_w,
                 self.body_M, self.body_I0inv)
+        kernel = kr.advance_jacobi if self.solve == "jacobi" else kr.advance
+        if self._launch is None or self._launch.kernel is not kernel:
+            self._launch = Launcher(kernel)  # backend.Launcher: no per-call argument processing
         if self.solve == "jacobi":
             T, cap = self.ct.shape[0], self.ct.shape[1]
-            kr.advance_jacobi(*args, self.work, self.jac, self.depth, self.win, float(dt), int(T * cap), int(self.n_bodies))
+            self._launch(*args, self.work, self.jac, self.depth, self.win, float(dt), int(T * cap), int(self.n_bodies))
         else:
-            kr.advance(*args, float(dt))
+            self._launch(*args, float(dt))
 
     def state(self) -> dict:
         """Body state as numpy: centre [B, 3] (m), R [B, 3, 3], V [B, 3] (m/s), omega [B, 3] (rad/s)."""

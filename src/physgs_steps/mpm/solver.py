@@ -43,7 +43,7 @@ import taichi as ti
 from ..errors import ConfigError, InputError
 from . import kernels as K
 from . import p2g_sorted as P2G
-from .backend import ensure_taichi
+from .backend import Launcher, ensure_taichi
 from . import colliders
 from . import rigid as rigid_mod
 from .colliders import StaticGeometry
@@ -201,6 +201,7 @@ class MPMSolver:
         spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid, p2g=self.p2g,
                       run=run)
         self._k = K.build(spec)
+        self._launch_substep = Launcher(self._k.substep)  # backend.Launcher: no per-call argument processing
         self._setup_rigid(xs[perm] * self.L, p_mass.astype(np.float64), ms[perm])
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
         self.set_state(x, velocity / self.L, np.zeros((P, 3, 3)), eye)
@@ -270,6 +271,7 @@ class MPMSolver:
                                                rigid_mod.contact_solve(self.arch))
             b = self.bound
             self._kr = rigid_mod.build(b.counts, b.boundary, bool(self._static_geoms), self.private_grid)
+            self._launch_reduce, self._launch_scatter = Launcher(self._kr.reduce), Launcher(self._kr.scatter)
 
     def init_affine(self, iterations: int = AFFINE_ITERATIONS) -> None:
         """Set every particle's C to the velocity gradient the APIC transfer reproduces for the
@@ -479,7 +481,7 @@ class MPMSolver:
         if self._sorter is not None and self.resort_every > 0 and self._since_sort >= self.resort_every:
             self.resort()
         self._since_sort += 1
-        self._k.substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
+        self._launch_substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
                         self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_r, self.grid_rm, self.grid_rv, self._mbody,
                         self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
                         self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
@@ -487,12 +489,12 @@ class MPMSolver:
                         float(b.gravity[2]), float(damp), self._cell_start)
         if self.rigid is not None:
             rb, kr = self.rigid, self._kr
-            kr.reduce(self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R, rb.part, rb.ct,
-                      rb.ct_count, self._dyn, self._lvl_phi, self._lvl_id, self._lvl_rows, float(self.time),
-                      float(self.dx), float(b.wall_margin), self.n_grid)
+            self._launch_reduce(self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R,
+                                rb.part, rb.ct, rb.ct_count, self._dyn, self._lvl_phi, self._lvl_id, self._lvl_rows,
+                                float(self.time), float(self.dx), float(b.wall_margin), self.n_grid)
             rb.advance(kr, dt)
-            kr.scatter(self.x, self.v, self.C, self.F, self.tau, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R,
-                       rb.body_V, rb.body_w, rb.body_K)
+            self._launch_scatter(self.x, self.v, self.C, self.F, self.tau, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c,
+                                 rb.body_R, rb.body_V, rb.body_w, rb.body_K)
         self.time += dt
 
     def stats(self) -> dict:
