@@ -477,7 +477,9 @@ def build(spec: Spec) -> SimpleNamespace:
             if b != 0 and held == 0:  # a holding region absorbs the forces on what it holds
                 vp = _particle_actions(b, xp, vp, t, dt, dyn)
         mass = p_mass[p]
-        affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
+        affine = mass * C[p]
+        if rigid == 0:  # a rigid particle's tau is 0 (materials.Rigid, rigid.py scatter): the same sum
+            affine = (-dt * p_vol[p] * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
         mv = mass * vp
         return base, fx, w, mv, affine, mass, touch, owner
 
@@ -662,6 +664,9 @@ def build(spec: Spec) -> SimpleNamespace:
                     rv = rmom / rm + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
                     if ti.static(damping):
                         rv *= damp
+                if owner > 0:  # covered by the body, or in its fringe (-owner): see the coupling below
+                    if rm < gbody[owner - 1, 9]:
+                        owner = -owner
                 grid_r[0, i, j, k] = owner
                 grid_rm[0, i, j, k] = rm
                 grid_rv[0, i, j, k] = rv
@@ -680,14 +685,8 @@ def build(spec: Spec) -> SimpleNamespace:
             # own, the soft material's there, the stress impulses) and of the rigid mass in its
             # fringe; covered nodes then move with its rigid motion, fringe nodes keep the soft
             # material's own velocity (the rigid particles read the body's field there)
+            # fringe (the rigid mass below gbody[b, 9]) marked -(1 + b) in grid update part 1
             B = gbody.shape[0]
-            for q in range(_box_count(box, 0)):
-                I0 = _box_node(box, 0, q)
-                i, j, k = I0[0], I0[1], I0[2]
-                o = grid_r[0, i, j, k]
-                if o > 0:
-                    if grid_rm[0, i, j, k] < gbody[o - 1, 9]:
-                        grid_r[0, i, j, k] = -o
             # sums in a fixed order (reproducible), parallel enough for a GPU: per (x, y) column
             # over z into gpart[i G + j], then per x slab over y into gpart[G^2 + i], then over x
             # (over the node box: outside it no node has mass)
@@ -841,18 +840,19 @@ def build(spec: Spec) -> SimpleNamespace:
             v[p] = new_v
             C[p] = new_C
             x[p] = x_new
-            q = _qrow(mparams, m)
-            cid = 0
-            if ti.static(n_combo > 1):
-                cid = mcombo[m]
-            ep_p = 0.0
-            if ti.static(any_fracture):
-                ep_p = ep[p]
-            F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
-            F[p] = F_new
-            tau[p] = tau_new
-            if ti.static(any_fracture):
-                ep[p] = ep_p
+            if rigid == 0:  # a rigid particle's F and tau are set by rigid.py's scatter after this kernel
+                q = _qrow(mparams, m)
+                cid = 0
+                if ti.static(n_combo > 1):
+                    cid = mcombo[m]
+                ep_p = 0.0
+                if ti.static(any_fracture):
+                    ep_p = ep[p]
+                F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
+                F[p] = F_new
+                tau[p] = tau_new
+                if ti.static(any_fracture):
+                    ep[p] = ep_p
 
     return SimpleNamespace(substep=substep, spec=spec, colliders=col)
 
