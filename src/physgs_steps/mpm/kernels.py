@@ -42,7 +42,11 @@ the box of nodes this substep's particles reach (their stencils' bases, min to m
 computed per chunk at the start of the substep; the clear runs over the union with the last
 substep's box, so every node outside the current box is zero (the boundary rules' mirror
 samples read zeros there, as before).  A node outside the box has no mass, and the passes do
-nothing at a node without mass, so results are those of the full-grid loops.  Cost that
+nothing at a node without mass, so results are those of the full-grid loops.  Each pass runs in
+parallel over the box's (x, y) columns and along z inside (``_box_columns``/``_box_column``): a
+node index computed per node (three integer divisions) made the passes cost more than twice as much
+(duck_stone, one thread, kernel profiler: clear, update, rigid field and boundaries 1.25 ms
+of a 7.8 ms substep, 0.48 with columns).  Cost that
 follows the scene: a small object in a 32^3 grid used to pay for all 32,768 nodes every
 substep (benchmarks/bench_node_box.py).  ``solver._box_full`` marks the whole
 grid dirty after another kernel (``affine_transfer``) wrote it.  On CUDA the box is the grid
@@ -375,15 +379,19 @@ def build(spec: Spec) -> SimpleNamespace:
         return lo, ti.max(ti.Vector([box[r, 3], box[r, 4], box[r, 5]]) - lo, 0)
 
     @ti.func
-    def _box_node(box: ti.template(), r, q):
-        """Node q (row-major, z fastest) of the node box in row r."""
-        lo, n = _box_lo_n(box, r)
-        return ti.Vector([lo[0] + q // (n[1] * n[2]), lo[1] + (q // n[2]) % n[1], lo[2] + q % n[2]])
+    def _box_columns(box: ti.template(), r):
+        """The (x, y) columns of the node box in row r: the node passes run over them in
+        parallel and along z inside (one division per column, not three per node: with the
+        index of a node computed per node, the passes cost 0.15-0.3 ms each on the 2-core CPU
+        for a 3,500-node box)."""
+        _, n = _box_lo_n(box, r)
+        return n[0] * n[1]
 
     @ti.func
-    def _box_count(box: ti.template(), r):
-        _, n = _box_lo_n(box, r)
-        return n[0] * n[1] * n[2]
+    def _box_column(box: ti.template(), r, qc):
+        """Column qc (row-major, y fastest) of the node box in row r: its i, j and z range."""
+        lo, n = _box_lo_n(box, r)
+        return lo[0] + qc // n[1], lo[1] + qc % n[1], lo[2], lo[2] + n[2]
 
     @ti.func
     def _body_field(b, I, dx, gbody: ti.template()):
@@ -600,16 +608,17 @@ def build(spec: Spec) -> SimpleNamespace:
             box[0, 3 + a] = hi
             box[2, a] = ti.min(lo, box[1, a])
             box[2, 3 + a] = ti.max(hi, box[1, 3 + a])
-        for q in range(n_chunks * _box_count(box, 2)):
-            c = q % n_chunks
-            I = _box_node(box, 2, q // n_chunks)
-            grid_v[c, I[0], I[1], I[2]] = ti.Vector.zero(ti.f32, 3)
-            grid_m[c, I[0], I[1], I[2]] = 0.0
-            grid_c[c, I[0], I[1], I[2]] = 0.0
-            if ti.static(rigid_cid >= 0):
-                grid_r[c, I[0], I[1], I[2]] = 0
-                grid_rm[c, I[0], I[1], I[2]] = 0.0
-                grid_rv[c, I[0], I[1], I[2]] = ti.Vector.zero(ti.f32, 3)
+        for qc in range(n_chunks * _box_columns(box, 2)):  # per chunk, the union box's (x, y) columns
+            c = qc // _box_columns(box, 2)
+            i, j, k0, k1 = _box_column(box, 2, qc % _box_columns(box, 2))
+            for k in range(k0, k1):
+                grid_v[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
+                grid_m[c, i, j, k] = 0.0
+                grid_c[c, i, j, k] = 0.0
+                if ti.static(rigid_cid >= 0):
+                    grid_r[c, i, j, k] = 0
+                    grid_rm[c, i, j, k] = 0.0
+                    grid_rv[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
         # P2G
         if ti.static(coarsened and private_grid):
             for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
@@ -638,45 +647,45 @@ def build(spec: Spec) -> SimpleNamespace:
                 _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                               grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
         # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
-        for q in range(_box_count(box, 0)):
-            I0 = _box_node(box, 0, q)
-            i, j, k = I0[0], I0[1], I0[2]
-            m = grid_m[0, i, j, k]
-            mom = grid_v[0, i, j, k]
-            touch = grid_c[0, i, j, k]
-            if ti.static(private_grid):
-                for c in range(1, n_chunks):
-                    m += grid_m[c, i, j, k]
-                    mom += grid_v[c, i, j, k]
-                    touch += grid_c[c, i, j, k]
-            grid_c[0, i, j, k] = touch
-            if ti.static(rigid_cid >= 0):
-                owner = grid_r[0, i, j, k]
-                rm = grid_rm[0, i, j, k]
-                rmom = grid_rv[0, i, j, k]
+        for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns, z inside (module docs)
+            i, j, k0, k1 = _box_column(box, 0, qc)
+            for k in range(k0, k1):
+                m = grid_m[0, i, j, k]
+                mom = grid_v[0, i, j, k]
+                touch = grid_c[0, i, j, k]
                 if ti.static(private_grid):
                     for c in range(1, n_chunks):
-                        owner = ti.max(owner, grid_r[c, i, j, k])
-                        rm += grid_rm[c, i, j, k]
-                        rmom += grid_rv[c, i, j, k]
-                rv = ti.Vector.zero(ti.f32, 3)
-                if rm > 0.0:
-                    rv = rmom / rm + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
+                        m += grid_m[c, i, j, k]
+                        mom += grid_v[c, i, j, k]
+                        touch += grid_c[c, i, j, k]
+                grid_c[0, i, j, k] = touch
+                if ti.static(rigid_cid >= 0):
+                    owner = grid_r[0, i, j, k]
+                    rm = grid_rm[0, i, j, k]
+                    rmom = grid_rv[0, i, j, k]
+                    if ti.static(private_grid):
+                        for c in range(1, n_chunks):
+                            owner = ti.max(owner, grid_r[c, i, j, k])
+                            rm += grid_rm[c, i, j, k]
+                            rmom += grid_rv[c, i, j, k]
+                    rv = ti.Vector.zero(ti.f32, 3)
+                    if rm > 0.0:
+                        rv = rmom / rm + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
+                        if ti.static(damping):
+                            rv *= damp
+                    if owner > 0:  # covered by the body, or in its fringe (-owner): see the coupling below
+                        if rm < gbody[owner - 1, 9]:
+                            owner = -owner
+                    grid_r[0, i, j, k] = owner
+                    grid_rm[0, i, j, k] = rm
+                    grid_rv[0, i, j, k] = rv
+                gv = ti.Vector.zero(ti.f32, 3)
+                if m > 0.0:
+                    gv = mom / m + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
                     if ti.static(damping):
-                        rv *= damp
-                if owner > 0:  # covered by the body, or in its fringe (-owner): see the coupling below
-                    if rm < gbody[owner - 1, 9]:
-                        owner = -owner
-                grid_r[0, i, j, k] = owner
-                grid_rm[0, i, j, k] = rm
-                grid_rv[0, i, j, k] = rv
-            gv = ti.Vector.zero(ti.f32, 3)
-            if m > 0.0:
-                gv = mom / m + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
-                if ti.static(damping):
-                    gv *= damp
-            grid_m[0, i, j, k] = m
-            grid_v[0, i, j, k] = gv
+                        gv *= damp
+                grid_m[0, i, j, k] = m
+                grid_v[0, i, j, k] = gv
         if ti.static(rigid_cid >= 0):
             # rigid bodies as moving colliders (rigid.py "Coupling"): a node where a body's
             # particles transfer is covered by it where the rigid mass there is at least gbody[b, 9]
@@ -690,15 +699,13 @@ def build(spec: Spec) -> SimpleNamespace:
             # sums in a fixed order (reproducible), parallel enough for a GPU: per (x, y) column
             # over z into gpart[i G + j], then per x slab over y into gpart[G^2 + i], then over x
             # (over the node box: outside it no node has mass)
-            for qc in range((box[0, 3] - box[0, 0]) * (box[0, 4] - box[0, 1])):  # the box's (x, y) columns
-                lo, n = _box_lo_n(box, 0)
-                i = lo[0] + qc // n[1]
-                j = lo[1] + qc % n[1]
+            for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns
+                i, j, k0, k1 = _box_column(box, 0, qc)
                 cix = i * G + j
                 for b in range(B):
                     for q in ti.static(range(N_GSUM)):
                         gpart[cix, b, q] = 0.0
-                for k in range(lo[2], lo[2] + n[2]):
+                for k in range(k0, k1):
                     o = grid_r[0, i, j, k]
                     m = ti.cast(grid_m[0, i, j, k], ti.f64)
                     vn = ti.cast(grid_v[0, i, j, k], ti.f64)
@@ -744,47 +751,47 @@ def build(spec: Spec) -> SimpleNamespace:
                     gbody[b, q] = c0[q]
                     gbody[b, 3 + q] = V[q]
                     gbody[b, 6 + q] = w[q]
-            for q in range(_box_count(box, 0)):
-                I0 = _box_node(box, 0, q)
-                i, j, k = I0[0], I0[1], I0[2]
-                o = grid_r[0, i, j, k]
-                m = grid_m[0, i, j, k]
-                if o != 0 and m > 0.0:
-                    vb = _body_field(ti.abs(o) - 1, ti.Vector([i, j, k]), dx, gbody)
-                    if o > 0:
-                        grid_v[0, i, j, k] = vb
-                    else:  # fringe: the soft material's own momentum (none: the body's field)
-                        rm = grid_rm[0, i, j, k]
-                        out = vb
-                        if m - rm > FRINGE_SOFT * m:
-                            out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
-                        grid_v[0, i, j, k] = out
+            for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns, z inside (module docs)
+                i, j, k0, k1 = _box_column(box, 0, qc)
+                for k in range(k0, k1):
+                    o = grid_r[0, i, j, k]
+                    m = grid_m[0, i, j, k]
+                    if o != 0 and m > 0.0:
+                        vb = _body_field(ti.abs(o) - 1, ti.Vector([i, j, k]), dx, gbody)
+                        if o > 0:
+                            grid_v[0, i, j, k] = vb
+                        else:  # fringe: the soft material's own momentum (none: the body's field)
+                            rm = grid_rm[0, i, j, k]
+                            out = vb
+                            if m - rm > FRINGE_SOFT * m:
+                                out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
+                            grid_v[0, i, j, k] = out
         # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
-        for q in range(_box_count(box, 0)):
-            I0 = _box_node(box, 0, q)
-            i, j, k = I0[0], I0[1], I0[2]
-            gv = grid_v[0, i, j, k]
-            if grid_m[0, i, j, k] > 0.0:
-                gv0 = gv  # before any boundary (front-band friction reads its own push on it)
-                pushed = ti.Vector.zero(ti.f32, 3)
-                I = ti.Vector([i, j, k])
-                xn = ti.cast(I, ti.f32) * dx
-                engaged = grid_c[0, i, j, k] > 0.0
-                for s in range(n_slots):
-                    active, phi, n, vc, kind, fric = col.slot(s, xn, I, True, t, dx, L, wall, dyn, lvl_phi, lvl_id,
-                                                              lvl_rows)
-                    # obstacles act where material touches them, on the nodes behind them and
-                    # those in front whose support holds the surface; cuboids (holding regions)
-                    # on every node inside, their mirrors beyond the held particles' reach
-                    if active == 1:
-                        if s < n_obst:
-                            if engaged and phi < FRONT_BAND * dx:
-                                gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, FRONT_BAND,
-                                                       0.0, grid_v, grid_m)
-                        elif phi < 0.0:
-                            gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, HELD_REACH,
-                                                   MIRROR_MASS * grid_m[0, i, j, k], grid_v, grid_m)
-            grid_b[i, j, k] = gv
+        for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns, z inside (module docs)
+            i, j, k0, k1 = _box_column(box, 0, qc)
+            for k in range(k0, k1):
+                gv = grid_v[0, i, j, k]
+                if grid_m[0, i, j, k] > 0.0:
+                    gv0 = gv  # before any boundary (front-band friction reads its own push on it)
+                    pushed = ti.Vector.zero(ti.f32, 3)
+                    I = ti.Vector([i, j, k])
+                    xn = ti.cast(I, ti.f32) * dx
+                    engaged = grid_c[0, i, j, k] > 0.0
+                    for s in range(n_slots):
+                        active, phi, n, vc, kind, fric = col.slot(s, xn, I, True, t, dx, L, wall, dyn, lvl_phi, lvl_id,
+                                                                  lvl_rows)
+                        # obstacles act where material touches them, on the nodes behind them and
+                        # those in front whose support holds the surface; cuboids (holding regions)
+                        # on every node inside, their mirrors beyond the held particles' reach
+                        if active == 1:
+                            if s < n_obst:
+                                if engaged and phi < FRONT_BAND * dx:
+                                    gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, FRONT_BAND,
+                                                           0.0, grid_v, grid_m)
+                            elif phi < 0.0:
+                                gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, HELD_REACH,
+                                                       MIRROR_MASS * grid_m[0, i, j, k], grid_v, grid_m)
+                grid_b[i, j, k] = gv
         # G2P, F update, return map, stress of the new F; boundaries on deformable particles
         for p in x:
             xp = x[p]
