@@ -127,10 +127,14 @@ def _job_env(**extra) -> dict:
     return dict(os.environ, PYTHONPATH=str(Path(W.__file__).resolve().parents[1]), **extra)
 
 
-def test_job_client_runs_in_the_worker_or_in_process(wdir, tmp_path):
+def test_job_client_runs_in_the_worker_or_in_process(wdir, tmp_path, monkeypatch):
     """The stage rules' command (physgs_steps.job): in the warm worker when wanted, in its own
     process when not; the spec as JSON text or as @file; the stage's failure is its exit status."""
     import subprocess
+
+    # PYTHONPATH is part of the worker's key: this process must name the worker the jobs start
+    # (and stop it at the end), whatever PYTHONPATH the suite runs under
+    monkeypatch.setenv("PYTHONPATH", _job_env()["PYTHONPATH"])
 
     ins, outs, cfg, log, out = _report_job(tmp_path, "j1")
     spec = {"input": ins, "output": outs, "cfg": cfg, "worker": {"stages": ["stage_report"]}}

@@ -43,7 +43,8 @@ computed per chunk at the start of the substep; the clear runs over the union wi
 substep's box, so every node outside the current box is zero (the boundary rules' mirror
 samples read zeros there, as before).  A node outside the box has no mass, and the passes do
 nothing at a node without mass, so results are those of the full-grid loops.  Each pass runs in
-parallel over the box's (x, y) columns and along z inside (``_box_columns``/``_box_column``): a
+parallel over the box's (x, y) columns and along z inside (``_box_columns``/``_box_column``; on CUDA
+one node per thread, which fills a GPU): a
 node index computed per node (three integer divisions) made the passes cost more than twice as much
 (duck_stone, one thread, kernel profiler: clear, update, rigid field and boundaries 1.25 ms
 of a 7.8 ms substep, 0.48 with columns).  Cost that
@@ -383,15 +384,25 @@ def build(spec: Spec) -> SimpleNamespace:
         """The (x, y) columns of the node box in row r: the node passes run over them in
         parallel and along z inside (one division per column, not three per node: with the
         index of a node computed per node, the passes cost 0.15-0.3 ms each on the 2-core CPU
-        for a 3,500-node box)."""
+        for a 3,500-node box).  On CUDA (one grid, ``private_grid`` off) every node is its own
+        "column" of one node: 4,096 columns of 64 nodes leave a GPU mostly idle (the H200's
+        substep kernel took 0.63 instead of 0.37 ms a substep at grid 64 with columns)."""
         _, n = _box_lo_n(box, r)
-        return n[0] * n[1]
+        res = n[0] * n[1]
+        if ti.static(not private_grid):
+            res *= n[2]
+        return res
 
     @ti.func
     def _box_column(box: ti.template(), r, qc):
-        """Column qc (row-major, y fastest) of the node box in row r: its i, j and z range."""
+        """Column qc (row-major, y fastest) of the node box in row r: its i, j and z range (on
+        CUDA node qc, row-major with z fastest, as a range of one: ``_box_columns``)."""
         lo, n = _box_lo_n(box, r)
-        return lo[0] + qc // n[1], lo[1] + qc % n[1], lo[2], lo[2] + n[2]
+        i, j, k0, k1 = lo[0] + qc // n[1], lo[1] + qc % n[1], lo[2], lo[2] + n[2]
+        if ti.static(not private_grid):
+            i, j, k0 = lo[0] + qc // (n[1] * n[2]), lo[1] + (qc // n[2]) % n[1], lo[2] + qc % n[2]
+            k1 = k0 + 1
+        return i, j, k0, k1
 
     @ti.func
     def _body_field(b, I, dx, gbody: ti.template()):
