@@ -129,19 +129,35 @@ def resting(solid):
 
 
 def stone() -> Instance:
-    """An irregular grey stone: an ellipsoid with smooth random bumps (fixed shape)."""
+    """An irregular grey stepping stone: a flat ellipsoid (0.32 x 0.24 x 0.06 m) with smooth
+    random bumps (fixed shape), flat enough that the duck dropped on it rests on it.
+
+    A body whose centre of mass is h above its bottom rests on another only if the two
+    surfaces' curvatures at the contact sum to less than 1/h (rolling stability, 1/h > 1/r + 1/R
+    in 2-D; in 3-D the largest eigenvalue of K_duck + K_stone). The duck (body ellipsoid
+    [0.075, 0.056, 0.045]) has bottom radii r 0.125 m along and 0.070 m across and h 0.056 m,
+    so the stone's top needs R > 1 / (1/0.056 - 1/0.070) = 0.29 m across where it lands. The
+    previous stone (semi-axes [0.12, 0.09, 0.058], bumps summing to 0.3) had R 0.14 m across
+    and 0.18 m along there (slope 5 deg; K sum 21.5 /m > 17.8): the duck rolled off. This one
+    (semi-axes [0.16, 0.12, 0.03], bumps summing to 0.2) has R 0.50 m across and 0.66 m along
+    under the duck's lowest point (principal 0.47 / 0.74 m, slope 1.4 deg; largest eigenvalue of
+    the summed curvatures 16.3 /m, h times it 0.92 < 1: stable; the duck alone on a plane gives
+    0.80). Its bottom is flatter too (principal radii 0.64 / 0.95 m under its centre of mass,
+    rising under 1 mm within 2.5 cm; the old stone 0.21 / 0.37 m, 3.3 mm), so on the ground it
+    bears on a patch of particles, not one. Volume 2.28e-3 m^3, 5.9 kg of granite (the old
+    stone 2.43e-3 m^3, 6.3 kg). tools/duck_stone_curvature.py prints these numbers."""
     rng = np.random.default_rng(20240611)
     k = 9
     amps = rng.uniform(0.4, 1.0, k)
-    amps *= 0.3 / amps.sum()
+    amps *= 0.2 / amps.sum()
     freqs = rng.normal(size=(k, 3))
     freqs *= (rng.uniform(1.5, 4.0, k) / np.linalg.norm(freqs, axis=1))[:, None]
     phases = rng.uniform(0.0, 2.0 * math.pi, k)
     rot = Rotation.from_euler("z", 20, degrees=True).as_matrix()
-    # lying on the ground at rest (resting): with only the bumps' 20 degree turn its centre of mass
-    # was 12 mm beside its lowest point, 2.8 degrees from its resting pose; released there it
-    # rolled into it (0.28 mm lower: 0.16 J at the simulation's scale) and rocked about it
-    return Instance("stone", [Part("stone", resting(blob([0.0, 0.0, 0.06], [0.12, 0.09, 0.058], amps, freqs,
+    # lying on the ground at rest (resting): the centre of mass above the lowest point, the pose
+    # a free body released on the ground stays in (the old stone lay 2.8 degrees off it, rolled
+    # into it, 0.16 J at the simulation's scale, and rocked about it)
+    return Instance("stone", [Part("stone", resting(blob([0.0, 0.0, 0.06], [0.16, 0.12, 0.03], amps, freqs,
                                                          phases, rot)), GREY)])
 
 
