@@ -138,13 +138,14 @@ def stone() -> Instance:
     [0.075, 0.056, 0.045]) has bottom radii r 0.125 m along and 0.070 m across and h 0.056 m,
     so the stone's top needs R > 1 / (1/0.056 - 1/0.070) = 0.29 m across where it lands. The
     previous stone (semi-axes [0.12, 0.09, 0.058], bumps summing to 0.3) had R 0.14 m across
-    and 0.18 m along there (slope 5 deg; K sum 21.5 /m > 17.8): the duck rolled off. This one
+    and 0.18 m along there (slope 5 deg; largest eigenvalue 21.7 /m > 1/h 17.8, h times it
+    1.22): the duck rolled off. This one
     (semi-axes [0.16, 0.12, 0.03], bumps summing to 0.2) has R 0.50 m across and 0.66 m along
     under the duck's lowest point (principal 0.47 / 0.74 m, slope 1.4 deg; largest eigenvalue of
     the summed curvatures 16.3 /m, h times it 0.92 < 1: stable; the duck alone on a plane gives
     0.80). Its bottom is flatter too (principal radii 0.64 / 0.95 m under its centre of mass,
     rising under 1 mm within 2.5 cm; the old stone 0.21 / 0.37 m, 3.3 mm), so on the ground it
-    bears on a patch of particles, not one. Volume 2.28e-3 m^3, 5.9 kg of granite (the old
+    bears on a patch of particles, not one. Volume 2.28e-3 m^3, 5.9 kg at 2600 kg/m^3 (the old
     stone 2.43e-3 m^3, 6.3 kg). tools/duck_stone_curvature.py prints these numbers."""
     rng = np.random.default_rng(20240611)
     k = 9
