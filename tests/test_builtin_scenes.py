@@ -406,3 +406,56 @@ def test_the_stone_lies_in_its_resting_pose():
     h0 = height([0.0, 0.0])
     for d in np.radians([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7]]):
         assert height(d) > h0 + 1e-6  # 1 degree either way lifts the centre of mass
+
+
+def _surface_curvature(solid, x0, y0, z_lo, z_hi, half=0.025, n=9):
+    """(curvature tensor [2, 2] (1/m, positive where the surface bulges away from the solid
+    in its normal's z direction), slope in degrees, z at (x0, y0)) of the solid's surface
+    z(x, y) around (x0, y0) between z_lo and z_hi (one crossing: its top if the solid is at
+    z_lo, its bottom if at z_hi), from a quadratic fit of points found on vertical rays."""
+    from scipy.optimize import brentq
+
+    g = np.linspace(-half, half, n)
+    X, Y = (a.ravel() for a in np.meshgrid(g, g))
+
+    def f(x, y, z):
+        return float(solid.sdf(np.array([[x, y, z]]))[0])
+
+    Z = np.array([brentq(lambda z: f(x0 + a, y0 + b, z), z_lo, z_hi, xtol=1e-10) for a, b in zip(X, Y)])
+    c = np.linalg.lstsq(np.stack([np.ones_like(X), X, Y, X * X, X * Y, Y * Y], 1), Z, rcond=None)[0]
+    grad = c[1:3]
+    H = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]]) / (1.0 + grad @ grad) ** 1.5
+    top = f(x0, y0, z_lo) < 0
+    return (-H if top else H), float(np.degrees(np.arctan(np.linalg.norm(grad)))), float(c[0])
+
+
+def test_the_duck_can_rest_on_the_stone():
+    """duck_stone's duck lands on a stone top flat enough to balance on: a body whose centre of
+    mass is h above its bottom rests on another only if the largest eigenvalue of the two
+    surfaces' summed curvature tensors is below 1/h (1/h > 1/r + 1/R in 2-D). The old stone
+    ([0.12, 0.09, 0.058]) had a top radius of 0.14 m across under the duck: h times the
+    eigenvalue was 1.22 and the duck rolled off. The duck is dropped in its resting pose: its
+    centre of mass above its lowest point (built upright it lay 7 mm ahead of it)."""
+    gt = ground_truth("duck_stone")
+    duck = gt.instances[gt.instance_names.index("duck")]
+    solid = gt.instances[gt.instance_names.index("stone")].parts[0].solid
+    body = next(p.solid for p in duck.parts if p.name == "body")
+    lo, hi = duck.aabb()
+    q = np.random.default_rng(1).uniform(lo, hi, (200_000, 3))
+    inside = np.zeros(len(q), bool)
+    for p in duck.parts:
+        inside |= p.solid.inside(q)
+    com = q[inside].mean(axis=0)  # uniform density
+    # the body's lowest point: the ellipsoid's support point in -z
+    A_inv = body.rot @ np.diag(body.radii**2) @ body.rot.T
+    low = body.center - A_inv[:, 2] / np.sqrt(A_inv[2, 2])
+    assert np.linalg.norm(com[:2] - low[:2]) < 1.5e-3  # resting pose: the centre of mass above it
+    h = com[2] - low[2]
+    assert 0.05 < h < 0.06
+    k_duck, _, _ = _surface_curvature(body, low[0], low[1], low[2] - 0.01, body.center[2], half=0.006)
+    v = solid.to_world(np.asarray(solid.mesh().vertices))
+    k_stone, slope, _ = _surface_curvature(solid, low[0], low[1], float(v[:, 2].mean()), float(v[:, 2].max()) + 0.01)
+    assert slope < 3.0
+    assert np.linalg.eigvalsh(k_stone).min() > 0.0  # a convex top there, no saddle
+    # stable, with margin (the duck alone on a plane: 0.80)
+    assert h * np.linalg.eigvalsh(k_duck + k_stone).max() < 0.95

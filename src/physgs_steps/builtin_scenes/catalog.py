@@ -87,7 +87,10 @@ def can() -> Instance:
 
 
 def duck() -> Instance:
-    """A rubber duck facing +x."""
+    """A rubber duck facing +x, in its resting pose (resting_instance: pitched 6.3 degrees nose
+    down). Built upright its centre of mass lies 7 mm ahead of its lowest point (the head), so
+    dropped upright it landed nose-heavy and rocked forward into that pose with the landing's
+    energy."""
     head_c = np.array([0.05, 0.0, 0.1])
     tail_dir = np.array([-math.cos(math.radians(35)), 0.0, math.sin(math.radians(35))])
     tail_up = np.array([math.sin(math.radians(35)), 0.0, math.cos(math.radians(35))])
@@ -102,7 +105,41 @@ def duck() -> Instance:
             Part(f"wing_{side}", ellipsoid([-0.012, 0.052 * s, 0.055], [0.042, 0.012, 0.024]), WING),
             Part(f"eye_{side}", sphere(head_c + 0.034 * _unit([0.55, 0.6 * s, 0.5]), 0.0065), DARK),
         ]
-    return Instance("duck", parts)
+    return resting_instance(Instance("duck", parts), mirror_y=True)
+
+
+def resting_instance(inst: Instance, mirror_y: bool = False) -> Instance:
+    """``inst`` (a union of parts, uniform density) turned about its centre of mass into the
+    resting pose nearest its own on a horizontal plane, as ``resting`` does for one solid: the
+    centre of mass from points inside on a fixed grid of samples, the lowest point from
+    samples of every part's surface. ``mirror_y``: the instance is mirror-symmetric about
+    y = 0, so it is only pitched (about y); the sampled centre of mass's y error would
+    otherwise roll it (1.2 degrees for the duck)."""
+    rng = np.random.default_rng(0)
+    lo, hi = inst.aabb()
+    q = rng.uniform(lo, hi, (200_000, 3))
+    inside = np.zeros(len(q), dtype=bool)
+    for p in inst.parts:
+        inside |= p.solid.inside(q)
+    com = q[inside].mean(axis=0)
+    surf = np.concatenate([p.solid.sample(40_000, rng)[0] for p in inst.parts])
+
+    if mirror_y:
+        com[1] = 0.0
+
+    def rot(a):
+        return Rotation.from_rotvec([0.0 if mirror_y else a[0], a[1], 0.0]).as_matrix()
+
+    def height(a):
+        R = rot(a)
+        return float((R @ com)[2] - (surf @ R[2]).min())
+
+    res = minimize(height, np.zeros(2), method="Nelder-Mead",
+                   options={"xatol": 1e-7, "fatol": 1e-12, "initial_simplex": [[0.0, 0.0], [0.02, 0.0], [0.0, 0.02]]})
+    R = rot(res.x)
+    return Instance(inst.name, [dataclasses.replace(
+        p, solid=dataclasses.replace(p.solid, center=com + R @ (p.solid.center - com), rot=R @ p.solid.rot))
+        for p in inst.parts])
 
 
 def resting(solid):
@@ -129,19 +166,36 @@ def resting(solid):
 
 
 def stone() -> Instance:
-    """An irregular grey stone: an ellipsoid with smooth random bumps (fixed shape)."""
+    """An irregular grey stepping stone: a flat ellipsoid (0.32 x 0.24 x 0.06 m) with smooth
+    random bumps (fixed shape), flat enough that the duck dropped on it rests on it.
+
+    A body whose centre of mass is h above its bottom rests on another only if the two
+    surfaces' curvatures at the contact sum to less than 1/h (rolling stability, 1/h > 1/r + 1/R
+    in 2-D; in 3-D the largest eigenvalue of K_duck + K_stone). The duck (body ellipsoid
+    [0.075, 0.056, 0.045], pitched 6.3 degrees into its resting pose) has bottom radii r 0.121 m
+    along and 0.069 m across and h 0.056 m, so the stone's top needs R > 1 / (1/0.056 - 1/0.069)
+    = 0.30 m across where it lands. The previous stone (semi-axes [0.12, 0.09, 0.058], bumps
+    summing to 0.3) had R 0.14 m across and 0.18 m along there (slope 5 deg; largest eigenvalue
+    21.7 /m > 1/h 17.8, h times it 1.22): the duck rolled off. This one (semi-axes
+    [0.16, 0.12, 0.03], bumps summing to 0.2) has R 0.51 m across and 0.64 m along under the
+    duck's lowest point (principal 0.47 / 0.72 m, slope 1.7 deg; largest eigenvalue of the
+    summed curvatures 16.5 /m, h times it 0.93 < 1: stable; the duck alone on a plane gives
+    0.81). Its bottom is flatter too (principal radii 0.64 / 0.95 m under its centre of mass,
+    rising under 1 mm within 2.5 cm; the old stone 0.21 / 0.37 m, 3.3 mm), so on the ground it
+    bears on a patch of particles, not one. Volume 2.28e-3 m^3, 5.9 kg at 2600 kg/m^3 (the old
+    stone 2.43e-3 m^3, 6.3 kg). tools/duck_stone_curvature.py prints these numbers."""
     rng = np.random.default_rng(20240611)
     k = 9
     amps = rng.uniform(0.4, 1.0, k)
-    amps *= 0.3 / amps.sum()
+    amps *= 0.2 / amps.sum()
     freqs = rng.normal(size=(k, 3))
     freqs *= (rng.uniform(1.5, 4.0, k) / np.linalg.norm(freqs, axis=1))[:, None]
     phases = rng.uniform(0.0, 2.0 * math.pi, k)
     rot = Rotation.from_euler("z", 20, degrees=True).as_matrix()
-    # lying on the ground at rest (resting): with only the bumps' 20 degree turn its centre of mass
-    # was 12 mm beside its lowest point, 2.8 degrees from its resting pose; released there it
-    # rolled into it (0.28 mm lower: 0.16 J at the simulation's scale) and rocked about it
-    return Instance("stone", [Part("stone", resting(blob([0.0, 0.0, 0.06], [0.12, 0.09, 0.058], amps, freqs,
+    # lying on the ground at rest (resting): the centre of mass above the lowest point, the pose
+    # a free body released on the ground stays in (the old stone lay 2.8 degrees off it, rolled
+    # into it, 0.16 J at the simulation's scale, and rocked about it)
+    return Instance("stone", [Part("stone", resting(blob([0.0, 0.0, 0.06], [0.16, 0.12, 0.03], amps, freqs,
                                                          phases, rot)), GREY)])
 
 
