@@ -43,7 +43,7 @@ computed per chunk at the start of the substep; the clear runs over the union wi
 substep's box, so every node outside the current box is zero (the boundary rules' mirror
 samples read zeros there, as before).  A node outside the box has no mass, and the passes do
 nothing at a node without mass, so results are those of the full-grid loops.  Each pass runs in
-parallel over the box's (x, y) columns and along z inside (``_box_columns``/``_box_column``; on CUDA
+parallel over the box's (x, y) columns and along z inside (``_box_runs``/``_box_run``; on CUDA
 one node per thread, which fills a GPU): a
 node index computed per node (three integer divisions) made the passes cost more than twice as much
 (duck_stone, one thread, kernel profiler: clear, update, rigid field and boundaries 1.25 ms
@@ -381,25 +381,38 @@ def build(spec: Spec) -> SimpleNamespace:
 
     @ti.func
     def _box_columns(box: ti.template(), r):
-        """The (x, y) columns of the node box in row r: the node passes run over them in
-        parallel and along z inside (one division per column, not three per node: with the
-        index of a node computed per node, the passes cost 0.15-0.3 ms each on the 2-core CPU
-        for a 3,500-node box).  On CUDA (one grid, ``private_grid`` off) every node is its own
-        "column" of one node: 4,096 columns of 64 nodes leave a GPU mostly idle (the H200's
-        substep kernel took 0.63 instead of 0.37 ms a substep at grid 64 with columns)."""
+        """The (x, y) columns of the node box in row r (one division per column, not three per
+        node: with the index of a node computed per node, the passes cost 0.15-0.3 ms each on the
+        2-core CPU for a 3,500-node box)."""
         _, n = _box_lo_n(box, r)
-        res = n[0] * n[1]
+        return n[0] * n[1]
+
+    @ti.func
+    def _box_column(box: ti.template(), r, qc):
+        """Column qc (row-major, y fastest) of the node box in row r: its i, j and z range."""
+        lo, n = _box_lo_n(box, r)
+        return lo[0] + qc // n[1], lo[1] + qc % n[1], lo[2], lo[2] + n[2]
+
+    @ti.func
+    def _box_runs(box: ti.template(), r):
+        """The runs of nodes a node pass hands to one thread: the box's (x, y) columns on the CPU
+        (``_box_columns``), single nodes on CUDA (one grid, ``private_grid`` off): 4,096 columns
+        of 64 nodes leave a GPU mostly idle (the H200's substep kernel took 0.63 instead of 0.37
+        ms a substep at grid 64 with columns).  Only for passes whose nodes are independent; the
+        rigid column sums need whole columns (``_box_columns``)."""
+        res = _box_columns(box, r)
         if ti.static(not private_grid):
+            _, n = _box_lo_n(box, r)
             res *= n[2]
         return res
 
     @ti.func
-    def _box_column(box: ti.template(), r, qc):
-        """Column qc (row-major, y fastest) of the node box in row r: its i, j and z range (on
-        CUDA node qc, row-major with z fastest, as a range of one: ``_box_columns``)."""
-        lo, n = _box_lo_n(box, r)
-        i, j, k0, k1 = lo[0] + qc // n[1], lo[1] + qc % n[1], lo[2], lo[2] + n[2]
+    def _box_run(box: ti.template(), r, qc):
+        """Run qc of ``_box_runs``: its i, j and z range (on CUDA node qc, row-major with z
+        fastest, as a range of one)."""
+        i, j, k0, k1 = _box_column(box, r, qc)
         if ti.static(not private_grid):
+            lo, n = _box_lo_n(box, r)
             i, j, k0 = lo[0] + qc // (n[1] * n[2]), lo[1] + (qc // n[2]) % n[1], lo[2] + qc % n[2]
             k1 = k0 + 1
         return i, j, k0, k1
@@ -619,9 +632,9 @@ def build(spec: Spec) -> SimpleNamespace:
             box[0, 3 + a] = hi
             box[2, a] = ti.min(lo, box[1, a])
             box[2, 3 + a] = ti.max(hi, box[1, 3 + a])
-        for qc in range(n_chunks * _box_columns(box, 2)):  # per chunk, the union box's (x, y) columns
-            c = qc // _box_columns(box, 2)
-            i, j, k0, k1 = _box_column(box, 2, qc % _box_columns(box, 2))
+        for qc in range(n_chunks * _box_runs(box, 2)):  # per chunk, the union box's columns (CUDA: nodes)
+            c = qc // _box_runs(box, 2)
+            i, j, k0, k1 = _box_run(box, 2, qc % _box_runs(box, 2))
             for k in range(k0, k1):
                 grid_v[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
                 grid_m[c, i, j, k] = 0.0
@@ -658,8 +671,8 @@ def build(spec: Spec) -> SimpleNamespace:
                 _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                               grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
         # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
-        for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns, z inside (module docs)
-            i, j, k0, k1 = _box_column(box, 0, qc)
+        for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
+            i, j, k0, k1 = _box_run(box, 0, qc)
             for k in range(k0, k1):
                 m = grid_m[0, i, j, k]
                 mom = grid_v[0, i, j, k]
@@ -762,8 +775,8 @@ def build(spec: Spec) -> SimpleNamespace:
                     gbody[b, q] = c0[q]
                     gbody[b, 3 + q] = V[q]
                     gbody[b, 6 + q] = w[q]
-            for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns, z inside (module docs)
-                i, j, k0, k1 = _box_column(box, 0, qc)
+            for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes)
+                i, j, k0, k1 = _box_run(box, 0, qc)
                 for k in range(k0, k1):
                     o = grid_r[0, i, j, k]
                     m = grid_m[0, i, j, k]
@@ -778,8 +791,8 @@ def build(spec: Spec) -> SimpleNamespace:
                                 out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
                             grid_v[0, i, j, k] = out
         # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
-        for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns, z inside (module docs)
-            i, j, k0, k1 = _box_column(box, 0, qc)
+        for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
+            i, j, k0, k1 = _box_run(box, 0, qc)
             for k in range(k0, k1):
                 gv = grid_v[0, i, j, k]
                 if grid_m[0, i, j, k] > 0.0:
