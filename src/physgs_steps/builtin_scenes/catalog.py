@@ -108,6 +108,21 @@ def duck() -> Instance:
     return resting_instance(Instance("duck", parts), mirror_y=True)
 
 
+def _resting_rotation(points, com, pitch_only: bool = False):
+    """The tilt R (about x and y; only y with ``pitch_only``) at which the centre of mass
+    ``com`` [3] lies lowest above the lowest of ``points`` [N, 3] (``resting``, ``resting_instance``)."""
+    def rot(a):
+        return Rotation.from_rotvec([0.0 if pitch_only else a[0], a[1], 0.0]).as_matrix()
+
+    def height(a):
+        R = rot(a)
+        return float((R @ com)[2] - (points @ R[2]).min())
+
+    res = minimize(height, np.zeros(2), method="Nelder-Mead",
+                   options={"xatol": 1e-7, "fatol": 1e-12, "initial_simplex": [[0.0, 0.0], [0.02, 0.0], [0.0, 0.02]]})
+    return rot(res.x)
+
+
 def resting_instance(inst: Instance, mirror_y: bool = False) -> Instance:
     """``inst`` (a union of parts, uniform density) turned about its centre of mass into the
     resting pose nearest its own on a horizontal plane, as ``resting`` does for one solid: the
@@ -126,17 +141,7 @@ def resting_instance(inst: Instance, mirror_y: bool = False) -> Instance:
 
     if mirror_y:
         com[1] = 0.0
-
-    def rot(a):
-        return Rotation.from_rotvec([0.0 if mirror_y else a[0], a[1], 0.0]).as_matrix()
-
-    def height(a):
-        R = rot(a)
-        return float((R @ com)[2] - (surf @ R[2]).min())
-
-    res = minimize(height, np.zeros(2), method="Nelder-Mead",
-                   options={"xatol": 1e-7, "fatol": 1e-12, "initial_simplex": [[0.0, 0.0], [0.02, 0.0], [0.0, 0.02]]})
-    R = rot(res.x)
+    R = _resting_rotation(surf, com, pitch_only=mirror_y)
     return Instance(inst.name, [dataclasses.replace(
         p, solid=dataclasses.replace(p.solid, center=com + R @ (p.solid.center - com), rot=R @ p.solid.rot))
         for p in inst.parts])
@@ -151,17 +156,7 @@ def resting(solid):
     mesh = solid.mesh()
     v = solid.to_world(np.asarray(mesh.vertices, dtype=np.float64))
     com = solid.to_world(np.asarray(mesh.center_mass, dtype=np.float64)[None])[0]
-
-    def rot(a):
-        return Rotation.from_rotvec([a[0], a[1], 0.0]).as_matrix()
-
-    def height(a):
-        R = rot(a)
-        return float((R @ com)[2] - (v @ R[2]).min())
-
-    res = minimize(height, np.zeros(2), method="Nelder-Mead",
-                   options={"xatol": 1e-7, "fatol": 1e-12, "initial_simplex": [[0.0, 0.0], [0.02, 0.0], [0.0, 0.02]]})
-    R = rot(res.x)
+    R = _resting_rotation(v, com)
     return dataclasses.replace(solid, center=com + R @ (solid.center - com), rot=R @ solid.rot)
 
 
