@@ -266,6 +266,7 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
                 res = json.loads(summ.read_text())[0]
                 rows.append({"stage": name, "step": step, "seconds": round(wall, 3),
                              "stage_seconds": res.get("seconds"), "simulate_seconds": res.get("simulate_seconds"),
+                             "substeps": res.get("substeps_total"), "held_frames": res.get("held_frames"),
                              "peak_gpu_mib": mem.peak_between(a, time.time())})
         elif structure == "inprocess":
             out = wd / ".chain.json"
@@ -276,6 +277,7 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
             for r in json.loads(out.read_text())["jobs"]:
                 rows.append({"stage": r["stage"], "step": r["step"], "seconds": r["seconds"],
                              "stage_seconds": r["seconds"], "simulate_seconds": r.get("simulate_seconds"),
+                             "substeps": r.get("substeps"), "held_frames": r.get("held_frames"),
                              "peak_gpu_mib": mem.peak_between(r["t0"], r["t1"]),
                              "import_seconds": r.get("import_seconds"), "breakdown": r.get("breakdown")})
         else:
@@ -300,15 +302,21 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
                 from .benchmark.readers import stage_summary
 
                 summ = stage_summary(wd / plan.log_path(name, step)) or {}
+                st = _sim_stats(wd, plan, name, step)
                 rows.append({"stage": name, "step": step, "seconds": secs, "stage_seconds": summ.get("seconds"),
-                             "simulate_seconds": _simulate_seconds(wd, plan, name, step), "peak_gpu_mib": None,
+                             "simulate_seconds": st.get("simulate_seconds"), "substeps": st.get("substeps_total"),
+                             "held_frames": st.get("held_frames"), "peak_gpu_mib": None,
                              "breakdown": breakdown(summ)})
         total = time.perf_counter() - t0
         if structure == "worker":
             total -= idle.pop("sampled_seconds")
-    sim = [r["simulate_seconds"] for r in rows if r["stage"] in SIM_STAGES and r["simulate_seconds"] is not None]
+    sims = [r for r in rows if r["stage"] in SIM_STAGES and r["simulate_seconds"] is not None]
+    sim = [r["simulate_seconds"] for r in sims]
+    n_sub = [r.get("substeps") for r in sims]
     res = {"structure": structure, "total_seconds": round(total, 2), "jobs": rows,
-           "substep_seconds": round(sum(sim), 2) if sim else None, "peak_gpu_mib": mem.peak_above_baseline,
+           "substep_seconds": round(sum(sim), 2) if sim else None,
+           "substeps": sum(n_sub) if sim and None not in n_sub else None,
+           "peak_gpu_mib": mem.peak_above_baseline,
            "gpu_baseline_mib": mem.baseline}
     if structure == "worker":
         res["idle_worker"] = idle
@@ -355,18 +363,19 @@ def breakdown(summary: dict | None) -> dict:
     return out
 
 
-def _simulate_seconds(wd: Path, plan, name: str, step: str | None) -> float | None:
-    """simulate_seconds from the stats of forward.h5 / final.h5 (Snakemake runs)."""
+def _sim_stats(wd: Path, plan, name: str, step: str | None) -> dict:
+    """The stats of forward.h5 / final.h5 (Snakemake runs): simulate_seconds, substeps_total,
+    held_frames, ... ({} for other stages or an unreadable file)."""
     if name not in SIM_STAGES:
-        return None
+        return {}
     path = wd / (plan.path("forward", step) if name == "forward_sim" else plan.path("final"))
     try:
         import h5py
 
         with h5py.File(path, "r") as f:
-            return json.loads(f.attrs["stats"]).get("simulate_seconds")
+            return dict(json.loads(f.attrs["stats"]))
     except Exception:
-        return None
+        return {}
 
 
 def measure(target: str = "bear", *, structures=STRUCTURES, n_gaussians: int | None = None,
@@ -398,7 +407,8 @@ def measure(target: str = "bear", *, structures=STRUCTURES, n_gaussians: int | N
             r = run_structure(structure, wd, target, cache, blog, with_metrics, gpu_baseline=base, until=until)
             r["temperature"] = temp
             result["runs"].append(r)
-            log(f"{structure:9s} {temp:4s}: {r['total_seconds']:7.2f} s, substeps {r['substep_seconds']} s, "
+            log(f"{structure:9s} {temp:4s}: {r['total_seconds']:7.2f} s, substeps {r['substep_seconds']} s "
+                f"({_per_substep(r)}), "
                 f"peak GPU {r['peak_gpu_mib']} MiB  " +
                 " ".join(f"{j['stage']}={j['seconds']}" for j in r["jobs"]))
             if out:
@@ -406,6 +416,14 @@ def measure(target: str = "bear", *, structures=STRUCTURES, n_gaussians: int | N
                 Path(out).write_text(json.dumps(result, indent=1, default=str) + "\n")
         stop_workers(cache)  # the warm run reused the cold run's worker, as a user's next run would
     return result
+
+
+def _per_substep(r: dict) -> str:
+    """``N substeps, X ms each`` of a run's simulation stages (or of one job)."""
+    n, secs = r.get("substeps"), r.get("substep_seconds", r.get("simulate_seconds"))
+    if not n or secs is None:
+        return "substeps not counted"
+    return f"{n} substeps, {1e3 * secs / n:.3f} ms each"
 
 
 def _device() -> str:
@@ -433,6 +451,8 @@ def table(result: dict) -> str:
                   "| job | seconds | import | peak GPU (MiB) | breakdown |", "|---|---|---|---|---|"]
         for j in r["jobs"]:
             b = dict(j.get("breakdown") or {})
+            if j.get("substeps") is not None:
+                b["substeps"] = f"{j['substeps']} ({_per_substep(j)}, {j.get('held_frames')} frames held)"
             imp = j.get("import_seconds", b.pop("import_seconds", None))
             b.pop("seconds", None)
             parts = ", ".join(f"{k}={v}" for k, v in b.items() if v is not None)
@@ -507,6 +527,7 @@ def _chain(target: str, config: str, out: str, with_metrics: bool, until: str | 
         res = run_stage(name, fn, ins, outs, scfg, logp, import_seconds=round(t_imp, 3))
         rows.append({"stage": name, "step": step, "seconds": round(time.perf_counter() - t0, 3), "t0": t0w,
                      "t1": time.time(), "simulate_seconds": res.get("simulate_seconds"),
+                     "substeps": res.get("substeps_total"), "held_frames": res.get("held_frames"),
                      "import_seconds": round(t_imp, 3), "breakdown": breakdown(res)})
     Path(out).write_text(json.dumps({"jobs": rows}, indent=1))
 
