@@ -82,8 +82,10 @@ def test_one_worker_serves_jobs_in_order_then_stops(wdir, tmp_path, capfd):
     second = W.ping()
     assert second["pid"] == first["pid"] and second["jobs"] == 2  # the same warm process
     assert out2.exists() and Path(log).read_text().count("done in") == 1
+    assert W.serving_pid() == first["pid"]  # read from the worker's pid file, no round trip
     assert W.shutdown() and W.ping() is None
-    assert not W.socket_path().exists()
+    assert not W.socket_path().exists() and W.serving_pid() is None
+    assert not W.socket_path().with_suffix(".pid").exists()
 
 
 def test_crash_is_reported_and_ends_the_worker(wdir, tmp_path):

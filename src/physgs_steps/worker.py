@@ -307,6 +307,8 @@ def serve(path: str | os.PathLike, idle_seconds: float = DEFAULT_IDLE_SECONDS) -
         return 0
     os.chmod(path, 0o600)
     ino = os.stat(path).st_ino  # the file is removed on exit only if it is still ours
+    with contextlib.suppress(OSError):  # read by serving_pid() (the run's end message), no round trip
+        path.with_suffix(".pid").write_text(str(os.getpid()))
     sock.listen(64)
     sock.settimeout(idle_seconds)
     jobs = 0
@@ -365,6 +367,9 @@ def _close_listener(sock: socket.socket, path: Path, ino: int) -> None:
     with contextlib.suppress(OSError):
         if os.stat(path).st_ino == ino:
             path.unlink()
+            pid = path.with_suffix(".pid")
+            if pid.read_text().strip() == str(os.getpid()):
+                pid.unlink()
     with contextlib.suppress(OSError):
         sock.close()
 
@@ -476,6 +481,23 @@ def shutdown(path: str | os.PathLike | None = None, wait_s: float = 15.0) -> boo
                 break
         time.sleep(0.02)
     return True
+
+
+def serving_pid(path: str | os.PathLike | None = None) -> int | None:
+    """The pid of the worker listening on ``path`` (default: this code's and environment's)
+    as it wrote it at its start, without asking it (a ping waits until the worker has
+    collected its last job's garbage); None when no socket is there."""
+    path = Path(path) if path else socket_path()
+    if not path.exists():
+        return None
+    try:
+        pid = int(path.with_suffix(".pid").read_text().strip())
+        os.kill(pid, 0)  # a worker killed outright leaves its files behind
+    except PermissionError:  # alive, another user's (not ours to judge)
+        return pid
+    except (OSError, ValueError):
+        return None
+    return pid
 
 
 def ping(path: str | os.PathLike | None = None) -> dict | None:

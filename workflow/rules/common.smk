@@ -239,11 +239,13 @@ def stop_worker(after_success=False):
     wcfg = config.get("worker") or {}
     if after_success and not wcfg.get("stop_after_run", False):
         # no ping: the worker answers only after collecting the last job's garbage (0.1 s and
-        # more of every run's end); `python -m physgs_steps.worker status` tells its pid and size
-        if W.socket_path().exists():
-            print(f"physgs: the warm stage worker stays for {wcfg.get('idle_seconds', W.DEFAULT_IDLE_SECONDS):g} s "
-                  "without a job (worker.stop_after_run stops it now; `python -m physgs_steps.worker status` "
-                  "shows it, `... stop` stops it)", file=sys.stderr)
+        # more of every run's end); `python -m physgs_steps.worker status` tells its size
+        pid = W.serving_pid()
+        if pid is not None:
+            print(f"physgs: the warm stage worker (pid {pid}) stays for "
+                  f"{wcfg.get('idle_seconds', W.DEFAULT_IDLE_SECONDS):g} s without a job (worker.stop_after_run "
+                  "stops it now; `python -m physgs_steps.worker status` shows its memory, `... stop` stops it)",
+                  file=sys.stderr)
         return
     if W.shutdown():
         print("physgs: stopped the warm stage worker", file=sys.stderr)
