@@ -357,6 +357,19 @@ class Fracture:
 
     @staticmethod
     @ti.func
+    def plastic_strain(sig_trial, sig_ret):
+        """Damaging plastic strain of one return map in principal space (U, V kept): the
+        equivalent plastic strain ``sqrt(2/3) |log(sig_trial) - log(sig_ret)|`` where the
+        returned state is in mean tension (``sum(log sig_ret) > 0``), else 0 (plastic flow
+        under mean compression does not tear)."""
+        e_ret = _log_sig(sig_ret)
+        dp = 0.0
+        if e_ret.sum() > 0.0:
+            dp = ti.sqrt(2.0 / 3.0) * (_log_sig(sig_trial) - e_ret).norm()
+        return dp
+
+    @staticmethod
+    @ti.func
     def damage(ep, q):
         return ti.min(ep / q[_Q_FRACTURE_SOFTENING], 1.0)
 
