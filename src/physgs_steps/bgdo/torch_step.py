@@ -250,6 +250,7 @@ PLASTIC_KEYS = ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max", 
 # Plasticity models that return in principal space (U and V of the trial F kept; the Taichi
 # models with svd_mode "needs"): their return map's plastic strain feeds a tearing material's ep.
 PRINCIPAL_PLASTICITY = ("von_mises", "drucker_prager", "mohr_coulomb")
+D_MAX = 0.95  # largest damage: a broken particle keeps 5% of its tensile stress (mpm/materials.py)
 
 
 def fracture_step(F_ret: torch.Tensor, ep: torch.Tensor, pp: PlasticParams, F_trial: torch.Tensor | None = None,
@@ -258,8 +259,8 @@ def fracture_step(F_ret: torch.Tensor, ep: torch.Tensor, pp: PlasticParams, F_tr
     equivalent plastic strain ``sqrt(2/3) |log sig(F_trial) - log sig(F_ret)|`` (rows where
     ``principal`` [B] bool: a PRINCIPAL_PLASTICITY model, and whose returned state is in mean
     tension, ``sum(log sig(F_ret)) > 0``) is added to ``ep``, then principal
-    elastic Hencky strains above ``fracture_strain`` are cut off and added to ``ep``; a fully
-    cracked particle (ep >= fracture_softening) forgets its tensile stretches.
+    elastic Hencky strains above ``fracture_strain`` are cut off and added to ``ep``; the
+    damage is ``min(ep / fracture_softening, D_MAX)``.
     F_ret  # [B, 3, 3]; ep  # [B]  ->  F  # [B, 3, 3], ep  # [B], d  # [B]"""
     U, sig, V = svd3(F_ret)
     e = torch.log(torch.clamp(sig, min=SIG_FLOOR))
@@ -270,8 +271,7 @@ def fracture_step(F_ret: torch.Tensor, ep: torch.Tensor, pp: PlasticParams, F_tr
     cap = pp.fracture_strain[:, None]
     ep = ep + torch.clamp(e - cap, min=0.0).sum(-1)
     e = torch.minimum(e, cap)
-    d = torch.clamp(ep / pp.fracture_softening, max=1.0)
-    e = torch.where((d >= 1.0)[:, None], torch.clamp(e, max=0.0), e)
+    d = torch.clamp(ep / pp.fracture_softening, max=D_MAX)
     return U @ torch.diag_embed(torch.exp(e)) @ V.transpose(-1, -2), ep, d
 
 
@@ -512,7 +512,7 @@ def particle_stress(F: torch.Tensor, log_E_p: torch.Tensor, table: InstanceTable
     idx = _fracturing(table, F.device)
     if ep is not None and idx.numel():
         pp = table.plastic.subset(table.label[idx])
-        d = torch.clamp(ep[idx] / pp.fracture_softening, max=1.0)
+        d = torch.clamp(ep[idx] / pp.fracture_softening, max=D_MAX)
         tau = tau.index_copy(0, idx, degrade(tau[idx], F[idx], d))
     return tau, mu, lam
 
