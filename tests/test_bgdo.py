@@ -551,6 +551,17 @@ def test_pseudo_step_matches_taichi_with_tearing():
         assert err <= 2e-5 * max(float(np.abs(ref[q]).max()), 1.0), (q, err)
 
 
+def test_principal_plasticity_is_the_taichi_needs_set():
+    """The torch mirror adds the return map's plastic strain to ep for the same plasticity
+    models as the Taichi kernels (those that return in the trial F's principal frame), and
+    caps the damage alike."""
+    from physgs_steps.bgdo.torch_step import D_MAX, PRINCIPAL_PLASTICITY
+    from physgs_steps.mpm import materials as M
+
+    assert set(PRINCIPAL_PLASTICITY) == {n for n, c in M.PLASTICITY.items() if c.svd_mode == "needs"}
+    assert D_MAX == M.D_MAX
+
+
 @pytest.mark.gpu
 def test_pseudo_step_cuda_matches_cpu():
     if not torch.cuda.is_available():

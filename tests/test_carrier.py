@@ -104,6 +104,29 @@ def test_carrier_moves_gaussians_exactly_under_affine_motion():
     assert np.abs(naive - gx[:6000] @ R.T).max() > 1e-3
 
 
+def test_carrier_keeps_gaussians_on_their_side_of_a_tear():
+    """A body torn in two: a gaussian follows only the drivers that move with its heaviest one,
+    so next to the tear it stays on its side instead of being drawn in the gap at the
+    weighted mean of both sides."""
+    rng = np.random.default_rng(6)
+    gx = rng.uniform([0.3, 0.45, 0.45], [0.7, 0.55, 0.55], (4000, 3))
+    s = particle_spacing(1 / 32, 4)
+    reps = representatives(gx, s)
+    c = build_carrier(gx, np.zeros(len(gx), np.int32), gx[reps], np.zeros(len(reps), np.int32), reps, "budget", 8, s)
+    x0 = gx[reps][np.argsort(reps)]  # final.h5 column order: drivers sorted by particle row
+    cmap = CarrierMap.build(c, c.drivers, gx, x0)
+    right = x0[:, 0] > 0.5
+    xt = x0 + np.where(right[:, None], [0.15, 0.0, -0.05], 0.0)  # the right half moved off: a gap
+    F = torch.eye(3, dtype=torch.float64).repeat(len(x0), 1, 1)
+    xs, _ = cmap.apply(torch.from_numpy(xt), F)
+    moved = np.linalg.norm(xs.numpy() - gx[cmap.rows.numpy()], axis=1)
+    both = (right[cmap.index.numpy()] & (cmap.weight.numpy() > 0)).any(1) & \
+        (~right[cmap.index.numpy()] & (cmap.weight.numpy() > 0)).any(1)
+    assert both.sum() > 100  # gaussians driven from both sides of the tear
+    shift = np.linalg.norm([0.15, 0.0, -0.05])
+    assert np.minimum(moved, np.abs(moved - shift)).max() < 1e-6  # each on one side, none in the gap
+
+
 def test_carrier_drops_drivers_final_h5_does_not_store():
     rng = np.random.default_rng(4)
     gx, glab, px, plab, prow, c = _two_instance_carrier(rng)

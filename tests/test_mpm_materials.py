@@ -10,7 +10,7 @@ import pytest
 
 from physgs_steps.errors import ConfigError
 from physgs_steps.mpm import MPMSolver
-from physgs_steps.mpm.materials import Material, dp_alpha, lame, preset
+from physgs_steps.mpm.materials import D_MAX, Material, dp_alpha, lame, preset
 
 E, NU = 2.0e5, 0.3
 ELASTIC = ["fixed_corotated", "neo_hookean", "stvk_hencky", "volume", "fluid"]
@@ -287,8 +287,8 @@ def test_wave_speed_is_the_speed_the_model_carries(el, pl):
 
 def test_tearing_return_map_caps_tension_and_breaks():
     """Tearing: principal elastic strain above fracture_strain becomes crack opening ep, the
-    tensile stresses fade with d = ep / fracture_softening, and a cracked particle keeps its
-    compression."""
+    tensile stresses fade with d = min(ep / fracture_softening, D_MAX), and a broken particle
+    keeps its compression and 1 - D_MAX of its tension."""
     m = Material("stvk_hencky", "identity", E=E, nu=NU, density=1000.0, name="brittle", fracture_strain=0.05,
                  fracture_softening=0.2)
     s = MPMSolver([m], n_grid=16, backend="cpu")
@@ -302,7 +302,8 @@ def test_tearing_return_map_caps_tension_and_breaks():
     d = e1 / 0.2
     t = np.array([2 * mu * 0.05 + lam * 0.05, lam * 0.05, lam * 0.05])  # Hencky stress of the capped F
     assert tau[1][0, 0] == pytest.approx((1 - d) * t[0], rel=1e-3)  # tension fades
-    assert ep[2] >= 0.2 and np.allclose(F_out[2], np.eye(3), atol=1e-6)  # cracked: tensile stretch forgotten
+    assert ep[2] >= 0.2 and np.allclose(F_out[2], np.diag([math.exp(0.05), 1, 1]), atol=1e-6)  # broken, capped
+    assert tau[2][0, 0] == pytest.approx((1 - D_MAX) * t[0], rel=1e-3)  # a broken particle keeps 5% of its tension
     assert np.allclose(F_out[3], 0.9 * np.eye(3), atol=1e-6) and tau[3][0, 0] < 0  # broken but still resists compression
     assert np.allclose(tau[3], tau[3][0, 0] * np.eye(3), atol=1e-3)
     with pytest.raises(ConfigError, match="fracture_softening"):
@@ -333,3 +334,80 @@ def test_pulled_bar_tears_only_with_fracture(tears):
         assert s.get_state()["ep"].max() >= 0.1  # fully cracked particles
     else:
         assert gap < 1.5 / 32
+
+
+def test_plastic_flow_in_tension_damages_a_tearing_material():
+    """Ductile tearing: the equivalent plastic strain of a von Mises return map adds to ep when
+    the returned state is in mean tension, not in mean compression, and not for a material that
+    does not tear."""
+    pp = dict(yield_stress=2e3, fracture_strain=0.5, fracture_softening=1.0)
+    tear = Material("stvk_hencky", "von_mises", E=5e4, nu=0.25, density=250.0, name="crumb", **pp)
+    keep = Material("stvk_hencky", "von_mises", E=5e4, nu=0.25, density=250.0, name="dough", yield_stress=2e3)
+    s = MPMSolver([tear, keep], n_grid=16, backend="cpu")
+    F = np.array([np.diag([1.3, 1.0, 1.0]), np.diag([0.7, 1.0, 1.0]), np.diag([1.3, 1.0, 1.0])], np.float32)
+    F_out, _, ep = s.return_map(F, np.array([0, 0, 1]), with_ep=True)
+    e_trial = np.log(np.linalg.svd(F[0], compute_uv=False))
+    e_ret = np.log(np.linalg.svd(F_out[0], compute_uv=False))
+    assert e_ret.sum() > 0  # the pulled particle returns in mean tension
+    assert ep[0] == pytest.approx(math.sqrt(2 / 3) * np.linalg.norm(e_trial - e_ret), rel=1e-4)
+    assert ep[0] > 0.1  # yielded by far (a 26% stretch, lateral stretches held: deviatoric flow only)
+    assert ep[1] == 0.0  # squashed: plastic flow in mean compression does not damage
+    assert ep[2] == 0.0  # a material without fracture parameters keeps no ep
+
+
+def _pulled_loaf(fracture: dict, n_grid: int = 32, E: float | None = None) -> np.ndarray:
+    """The built-in bread scene in small (config/scenes/bread.yaml): a loaf-sized block of the
+    knowledge base's bread (0.48 x 0.22 x 0.16 domain units of 1 m, 2,916 particles on a
+    jittered lattice, like a fill's irregular spacing; a regular lattice parts between two
+    particle layers even without tearing) where the scene's loaf is, 0.3 above the ground; its
+    two end 15% are pulled apart along x at 0.18 m/s for 0.75 s and then held (they carry the
+    loaf); 1.5 s of gravity in all.  Returns the particle positions at the end."""
+    from physgs_steps import materials_kb
+    from physgs_steps.mpm import Dynamics
+
+    kb = materials_kb.material_params("bread")
+    pp = {k: v for k, v in kb["plasticity_params"].items() if k in ("yield_stress", "fracture_strain",
+                                                                    "fracture_softening")}
+    pp.update(fracture)
+    m = Material(kb["elasticity"], kb["plasticity"], E=E or kb["E"], nu=kb["nu"], density=kb["density"], name="bread",
+                 **pp)
+    h, lo, hi = 1 / 56, np.array([0.26, 0.39, 0.42]), np.array([0.74, 0.61, 0.58])
+    ax = [np.arange(a + h / 2, b, h) for a, b in zip(lo, hi)]
+    x = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    x = x + np.random.default_rng(0).uniform(-0.35 * h, 0.35 * h, x.shape)
+    bcs = []
+    for b0, b1, vx in (([0, 0, 0], [0.15, 1, 1], -0.18), ([0.85, 0, 0], [1, 1, 1], 0.18)):
+        bcs.append({"type": "enforce_particle_translation", "instance": "bread", "bbox_min": b0, "bbox_max": b1,
+                    "velocity": [vx, 0.0, 0.0], "end_time": 0.75})
+        bcs.append({"type": "enforce_particle_translation", "instance": "bread", "bbox_min": b0, "bbox_max": b1,
+                    "velocity": [0.0, 0.0, 0.0], "start_time": 0.75})
+    dyn = Dynamics.from_config({"gravity": [0, 0, -9.8], "ground": {"height": 0.1, "friction": 0.3},
+                                "boundary_conditions": bcs})
+    s = MPMSolver([m], n_grid=n_grid, dynamics=dyn, backend="cpu")
+    s.set_particles(x, np.full(len(x), h ** 3), np.zeros(len(x), int))
+    dt = 0.4 * (1 / n_grid) / m.wave_speed
+    for _ in range(int(round(1.5 / dt))):
+        s.substep(dt)
+    out = s.get_state()["x"]
+    assert np.isfinite(out).all()
+    return out
+
+
+@pytest.mark.parametrize("n_grid", [24, 32])
+def test_pulled_loaf_tears_into_two_pieces(n_grid):
+    """The knowledge base's bread, pulled like the bread scene, parts into two pieces: at the
+    end the two largest connected pieces of the particle cloud (particles closer than dx
+    linked) hold nearly all of it, each about half, and the halves hang more than four grid
+    cells apart.  Measured (grid 24 / 32): two largest 99.5 / 99.8%, smaller one 47.7 / 47.2%,
+    gap 6.3 / 9.0 dx.  Before plastic flow damaged (main at aab9ce8) the knowledge base's
+    bread did not tear: one piece at grid 24, at grid 32 a neck drawn out until its particles
+    lay more than dx apart, 2.5 dx; the tension cut-off alone (fracture_strain 3%,
+    fracture_softening 10%) scattered the middle: two largest 47.9 / 30.9%."""
+    from physgs_steps.physical import pieces
+
+    x = _pulled_loaf({}, n_grid)
+    dx = 1 / n_grid
+    p = pieces(x, dx)
+    assert p["top2"] > 0.95
+    assert p["sizes"][1] > 0.35 * len(x)  # torn in the middle part, not a crumb off an end
+    assert p["gap"] > 4 * dx

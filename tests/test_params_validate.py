@@ -125,10 +125,10 @@ def test_bad_pins_are_config_errors(kb, entry, key):
     assert key in str(ei.value)
 
 
-def test_tearing_is_opt_in_by_pin(kb):
-    """No KB material tears by default; a scene pin turns tearing on for its instance, through
-    both the answer path and the pin-only path (merge_pins)."""
-    assert all(e["plasticity_params"].get("fracture_strain") is None for e in kb.values())
+def test_tearing_from_kb_and_pins(kb):
+    """Of the KB materials only bread tears by default; a scene pin sets an instance's tearing
+    parameters, through both the answer path and the pin-only path (merge_pins)."""
+    assert [k for k, e in kb.items() if e["plasticity_params"].get("fracture_strain") is not None] == ["bread"]
     pins = V.check_pins({"material": "bread", "fracture_strain": 0.03, "fracture_softening": 0.1}, 0, kb)
     vals, _ = V.merge_pins(base(kb), pins, kb)
     assert vals["plasticity_params"]["fracture_strain"] == 0.03
@@ -137,6 +137,10 @@ def test_tearing_is_opt_in_by_pin(kb):
                                 {"fracture_strain": 0.05}, kb)
     assert vals["plasticity_params"]["fracture_strain"] == 0.05
     vals, _ = V.merge_pins(base(kb), V.check_pins({"material": "bread"}, 0, kb), kb)
+    assert vals["plasticity_params"]["fracture_strain"] == kb["bread"]["plasticity_params"]["fracture_strain"]
+    vals, _ = V.finalize_answer(answer(material="bread", plasticity="von_mises"), base(kb), {}, kb)
+    assert vals["plasticity_params"]["fracture_softening"] == kb["bread"]["plasticity_params"]["fracture_softening"]
+    vals, _ = V.merge_pins(base(kb), V.check_pins({"material": "jelly"}, 0, kb), kb)
     assert vals["plasticity_params"]["fracture_strain"] is None
 
 

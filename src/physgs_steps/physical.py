@@ -191,6 +191,37 @@ def det3(F: np.ndarray) -> np.ndarray:
             + F[:, 0, 2] * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
 
 
+def pieces(x: np.ndarray, link: float) -> dict:
+    """The pieces a particle cloud is in: connected components of the graph whose edges join
+    particles closer than ``link`` (e.g. the grid spacing dx: an MPM body whose particles lie
+    farther apart than dx no longer moves as one through the grid's stencils).
+
+    x  # [N, 3]  ->  {"sizes": [K] particle counts, largest first, "labels": [N] component of each
+    particle, ranked like ``sizes`` (0 the largest), "top2": share of the particles in the two
+    largest pieces, "gap": smallest distance between the two largest pieces (0 with one piece)}."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(x, np.float64)
+    n = len(x)
+    if n == 0:
+        return {"sizes": np.zeros(0, np.int64), "labels": np.zeros(0, np.int64), "top2": 0.0, "gap": 0.0}
+    pairs = cKDTree(x).query_pairs(link, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, lab = connected_components(graph, directed=False)
+    counts = np.bincount(lab)
+    order = np.argsort(-counts, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    labels = rank[lab]
+    sizes = counts[order]
+    gap = 0.0
+    if len(sizes) > 1:
+        gap = float(cKDTree(x[labels == 0]).query(x[labels == 1])[0].min())
+    return {"sizes": sizes, "labels": labels, "top2": float(sizes[:2].sum() / n), "gap": gap}
+
+
 def _num(v) -> float | None:
     v = float(v)
     return v if np.isfinite(v) else None

@@ -247,18 +247,31 @@ class PlasticParams:
 PLASTIC_KEYS = ("yield_stress", "friction_angle", "cohesion", "j_min", "j_max", "fracture_strain", "fracture_softening")
 
 
-def fracture_step(F_ret: torch.Tensor, ep: torch.Tensor, pp: PlasticParams) -> tuple:
-    """Tearing after the return map (mpm/materials.py, class Fracture): principal elastic
-    Hencky strains above ``fracture_strain`` are cut off and added to ``ep``; a fully cracked
-    particle (ep >= fracture_softening) forgets its tensile stretches.
+# Plasticity models that return in principal space (U and V of the trial F kept; the Taichi
+# models with svd_mode "needs"): their return map's plastic strain feeds a tearing material's ep.
+PRINCIPAL_PLASTICITY = ("von_mises", "drucker_prager", "mohr_coulomb")
+D_MAX = 0.95  # largest damage: a broken particle keeps 5% of its tensile stress (mpm/materials.py)
+
+
+def fracture_step(F_ret: torch.Tensor, ep: torch.Tensor, pp: PlasticParams, F_trial: torch.Tensor | None = None,
+                  principal: torch.Tensor | None = None) -> tuple:
+    """Tearing after the return map (mpm/materials.py, class Fracture): the return map's
+    equivalent plastic strain ``sqrt(2/3) |log sig(F_trial) - log sig(F_ret)|`` (rows where
+    ``principal`` [B] bool: a PRINCIPAL_PLASTICITY model, and whose returned state is in mean
+    tension, ``sum(log sig(F_ret)) > 0``) is added to ``ep``, then principal
+    elastic Hencky strains above ``fracture_strain`` are cut off and added to ``ep``; the
+    damage is ``min(ep / fracture_softening, D_MAX)``.
     F_ret  # [B, 3, 3]; ep  # [B]  ->  F  # [B, 3, 3], ep  # [B], d  # [B]"""
     U, sig, V = svd3(F_ret)
     e = torch.log(torch.clamp(sig, min=SIG_FLOOR))
+    if F_trial is not None and principal is not None:
+        e_trial = torch.log(torch.clamp(svd3(F_trial)[1], min=SIG_FLOOR))
+        dp = math.sqrt(2.0 / 3.0) * torch.linalg.vector_norm(e_trial - e, dim=-1)
+        ep = ep + torch.where(principal & (e.sum(-1) > 0.0), dp, torch.zeros_like(dp))
     cap = pp.fracture_strain[:, None]
     ep = ep + torch.clamp(e - cap, min=0.0).sum(-1)
     e = torch.minimum(e, cap)
-    d = torch.clamp(ep / pp.fracture_softening, max=1.0)
-    e = torch.where((d >= 1.0)[:, None], torch.clamp(e, max=0.0), e)
+    d = torch.clamp(ep / pp.fracture_softening, max=D_MAX)
     return U @ torch.diag_embed(torch.exp(e)) @ V.transpose(-1, -2), ep, d
 
 
@@ -499,7 +512,7 @@ def particle_stress(F: torch.Tensor, log_E_p: torch.Tensor, table: InstanceTable
     idx = _fracturing(table, F.device)
     if ep is not None and idx.numel():
         pp = table.plastic.subset(table.label[idx])
-        d = torch.clamp(ep[idx] / pp.fracture_softening, max=1.0)
+        d = torch.clamp(ep[idx] / pp.fracture_softening, max=D_MAX)
         tau = tau.index_copy(0, idx, degrade(tau[idx], F[idx], d))
     return tau, mu, lam
 
@@ -802,7 +815,10 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
     F_new = plastic_projection(F_trial, mu, lam, table)
     idx = _fracturing(table, F.device)
     if idx.numel():
-        F_f, ep_f, _ = fracture_step(F_new[idx], ep[idx], table.plastic.subset(table.label[idx]))
+        ks = [k for k, m in enumerate(table.plasticity) if m in PRINCIPAL_PLASTICITY]
+        principal = torch.isin(table.label[idx], torch.as_tensor(ks, dtype=table.label.dtype, device=F.device))
+        F_f, ep_f, _ = fracture_step(F_new[idx], ep[idx], table.plastic.subset(table.label[idx]), F_trial[idx],
+                                     principal)
         F_new = F_new.index_copy(0, idx, F_f)
         ep = ep.index_copy(0, idx, ep_f)
     if bodies:

@@ -952,7 +952,10 @@ def _make_update(el: type, pl: type, fracture: bool = False):
         d = 0.0
         ep_out = ep
         if ti.static(fracture):
-            F_new, sig2, ep_out, d = M.Fracture.update(U2, sig2, V2, ep, q)
+            dp = 0.0
+            if ti.static(pl.svd_mode == "needs"):  # U, V kept: the plastic strain is log(sig / sig2)
+                dp = M.Fracture.plastic_strain(sig, sig2)
+            F_new, sig2, ep_out, d = M.Fracture.update(U2, sig2, V2, ep + dp, q)
         J = 0.0
         if ti.static(svd_ok):
             J = sig2[0] * sig2[1] * sig2[2]

@@ -320,21 +320,36 @@ class FluidPlasticity(Plasticity):
 
 
 # ============================================================================ fracture
+D_MAX = 0.95  # largest damage: a broken particle keeps 5% of its tensile stress (Fracture)
+
+
 class Fracture:
     """Tearing: a per-particle damage state in the constitutive path (mpm88's ``Jp`` slot).
 
-    A Rankine tension cut-off with softening (in the spirit of Wolper et al. 2019, "CD-MPM:
-    continuum damage material point methods for dynamic fracture animation"): no principal
-    elastic Hencky strain of a tearing material exceeds ``fracture_strain``; what the cut-off
-    removes is crack opening and accumulates in the particle's ``ep`` [P].  The damage
-    ``d = min(ep / fracture_softening, 1)`` fades the tensile principal stresses,
-    ``tau_d = U diag(min(t, 0) + (1 - d) max(t, 0)) U^T`` (t the principal Kirchhoff stresses,
-    U their directions), so a cracked particle no longer holds its neighbours together (the
-    grid lets the pieces part) but still resists compression.  A fully cracked particle
-    (d = 1) also forgets its tensile stretches (``e_i = min(e_i, 0)``).  Compression and
-    shear do not crack a material (its plasticity model handles them).  Softening localises
-    in a band one or two cells wide, so the energy a crack takes scales with dx (no crack-band
-    regularisation).
+    Continuum damage (in the spirit of Wolper et al. 2019, "CD-MPM: continuum damage material
+    point methods for dynamic fracture animation") driven by the particle's accumulated
+    inelastic strain ``ep`` [P], which grows in two ways:
+
+    * ductile: the equivalent plastic strain of the return map (:meth:`plastic_strain`, for
+      the plasticity models that return in principal space: von Mises, Drucker-Prager,
+      Mohr-Coulomb) while the returned state is in mean tension (ductile damage grows with
+      plastic strain under positive stress triaxiality; Lemaitre 1985, Bao & Wierzbicki 2004);
+      plastic flow localises where the body necks, so a pulled plastic body tears there;
+    * brittle: a Rankine tension cut-off - no principal elastic Hencky strain exceeds
+      ``fracture_strain``; what the cut-off removes is crack opening added to ``ep``.
+
+    The damage ``d = min(ep / fracture_softening, D_MAX)`` fades the tensile principal
+    stresses, ``tau_d = U diag(min(t, 0) + (1 - d) max(t, 0)) U^T`` (t the principal Kirchhoff
+    stresses, U their directions), so a broken particle no longer holds its neighbours together
+    (the grid lets the pieces part) but still resists compression.  A broken particle keeps
+    ``1 - D_MAX`` (5%) of its tensile stress (a residual stiffness, like the maximum
+    degradation of FE damage models): a band of broken particles carries at most 5% of the
+    intact tension, so the pieces part, but broken crumb next to intact material stays stuck
+    to it instead of being shed as loose crumbs (the bread scene at 40 frames: 24 of its 2969
+    particles outside the two halves at 1% residual, 9 at 5%, 53 with none).  Compression and shear do not crack a material
+    (its plasticity model handles them, and its plastic flow in mean compression does not
+    damage).  No crack-band regularisation: the neck, and so the band where ``ep`` grows, is
+    one to three cells wide, so a coarser grid tears later (README, "Tearing").
     """
 
     @staticmethod
@@ -349,16 +364,27 @@ class Fracture:
             if e[i] > cap:
                 ep_new += e[i] - cap
                 e[i] = cap
-        d = ti.min(ep_new / q[_Q_FRACTURE_SOFTENING], 1.0)
-        if d >= 1.0:
-            e = ti.min(e, 0.0)
+        d = ti.min(ep_new / q[_Q_FRACTURE_SOFTENING], D_MAX)
         s = ti.exp(e)
         return U @ _diag(s) @ V.transpose(), s, ep_new, d
 
     @staticmethod
     @ti.func
+    def plastic_strain(sig_trial, sig_ret):
+        """Damaging plastic strain of one return map in principal space (U, V kept): the
+        equivalent plastic strain ``sqrt(2/3) |log(sig_trial) - log(sig_ret)|`` where the
+        returned state is in mean tension (``sum(log sig_ret) > 0``), else 0 (plastic flow
+        under mean compression does not tear)."""
+        e_ret = _log_sig(sig_ret)
+        dp = 0.0
+        if e_ret.sum() > 0.0:
+            dp = ti.sqrt(2.0 / 3.0) * (_log_sig(sig_trial) - e_ret).norm()
+        return dp
+
+    @staticmethod
+    @ti.func
     def damage(ep, q):
-        return ti.min(ep / q[_Q_FRACTURE_SOFTENING], 1.0)
+        return ti.min(ep / q[_Q_FRACTURE_SOFTENING], D_MAX)
 
     @staticmethod
     @ti.func

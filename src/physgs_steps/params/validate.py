@@ -24,7 +24,7 @@ PIN_KEYS = ("material", "elasticity", "plasticity", "E", "nu", "density",
             "yield_stress", "friction_angle", "cohesion", "fracture_strain", "fracture_softening", "rigid")
 VALUE_KEYS = ("elasticity", "plasticity", "E", "nu", "density")
 PLASTICITY_ANSWER_KEYS = ("yield_stress", "friction_angle", "cohesion")
-# Tearing parameters: a scene may pin them (opt-in tearing); a model is never asked for them.
+# Tearing parameters: the knowledge base or a scene pin sets them; a model is never asked for them.
 PLASTICITY_PIN_KEYS = PLASTICITY_ANSWER_KEYS + ("fracture_strain", "fracture_softening")
 REQUIRED_ANSWER_KEYS = ("material", "elasticity", "plasticity", "E", "nu", "density")
 OPTIONAL_ANSWER_KEYS = ("rigid",)  # asked unless pinned; a missing or unreadable answer keeps the material's flag
@@ -76,7 +76,7 @@ def _check_pins(entry: dict, index: int, kb: dict) -> dict:
     }
     ranges = {"E": "> 0 Pa", "density": "> 0 kg/m^3", "nu": "in [0, 0.5)", "yield_stress": "> 0 Pa",
               "friction_angle": "in [0, 90) degrees", "cohesion": ">= 0",
-              "fracture_strain": "> 0 (principal Hencky strain)", "fracture_softening": "> 0 (crack opening strain)"}
+              "fracture_strain": "> 0 (principal Hencky strain)", "fracture_softening": "> 0 (inelastic strain to full damage)"}
     for k in ("rigid", "fixed"):
         v = entry.get(k)
         if v is not None and not isinstance(v, bool):
