@@ -18,6 +18,7 @@ from physgs_steps import bgdo as B
 from physgs_steps import config as C
 from physgs_steps.errors import ConfigError, InputError
 from physgs_steps.mpm.colliders import FRONT_BAND, TOUCH
+from physgs_steps.mpm.material import FLIP_RATIO
 
 LOG = logging.getLogger("test_bgdo")
 PP = {"yield_stress": 300.0, "friction_angle": 30.0, "cohesion": 0.01, "j_min": 0.95, "j_max": 1.05}
@@ -109,7 +110,8 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
     dx = L / G
     inv_dx = 1 / dx
     xs, vs = x * L, v * L
-    grid_v, grid_m = {}, {}
+    grid_v, grid_m, grid_o = {}, {}, {}
+    vh = vs - 0.5 * dt * np.asarray(g, float)  # the staggered (half-step) velocities
     mu = E / (2 * (1 + nu))
     lam = E * nu / ((1 + nu) * (1 - 2 * nu))
     stencils = []
@@ -126,8 +128,9 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
             dpos = (np.array(o) - fx) * dx
             weight = w[o[0]][0] * w[o[1]][1] * w[o[2]][2]
             node = tuple(base + np.array(o))
-            grid_v[node] = grid_v.get(node, 0) + weight * (p_mass * (vs[p] - 0.5 * dt * np.asarray(g, float)) + affine @ dpos)
+            grid_v[node] = grid_v.get(node, 0) + weight * (p_mass * vh[p] + affine @ dpos)
             grid_m[node] = grid_m.get(node, 0) + weight * p_mass
+            grid_o[node] = grid_o.get(node, 0) + weight * p_mass * (vh[p] + Cm[p] @ dpos)  # FLIP: no stress
     # domain walls: planes `margin` inside the domain faces, acting on the nodes of particles
     # that touch them, with velocities on the line from the wall to the mirror point (colliders.py)
     walls = [(a, sg, margin * L if sg > 0 else L - margin * L) for a in range(3) for sg in (1.0, -1.0)]
@@ -186,15 +189,18 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
     out = {k: np.zeros_like(a) for k, a in (("x", x), ("v", v), ("C", Cm), ("F", F))}
     for p in range(P):
         base, fx, w = stencils[p]
-        nv, nC = np.zeros(3), np.zeros((3, 3))
+        nv, nC, v_old = np.zeros(3), np.zeros((3, 3)), np.zeros(3)
         for o in itertools.product(range(3), repeat=3):
             dpos = (np.array(o) - fx) * dx
             weight = w[o[0]][0] * w[o[1]][1] * w[o[2]][2]
-            gv = grid_v[tuple(base + np.array(o))]
+            node = tuple(base + np.array(o))
+            gv = grid_v[node]
             nv += weight * gv
             nC += 4 * inv_dx ** 2 * weight * np.outer(gv, dpos)
+            v_old += weight * grid_o[node] / grid_m[node]
         Ft = (np.eye(3) + dt * nC) @ F[p]
         xn = xs[p] + dt * nv
+        nv = nv + FLIP_RATIO.get(models[p][1], 0.0) * (vh[p] - v_old)  # granular models: AFLIP (step 4)
         for a, sg, pos in walls:  # particles behind a wall go back onto it
             phi = sg * (xn[a] - pos)
             if phi < 0:

@@ -12,6 +12,7 @@ import torch
 
 from .. import materials_kb
 from ..mpm.colliders import COVER, FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
+from ..mpm.material import FLIP_RATIO
 
 # ----------------------------------------------------------------------------- model names
 ELASTICITY = materials_kb.ELASTICITY_MODELS  # canonical names, docs/CONTRACTS.md
@@ -539,7 +540,8 @@ def plastic_projection(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, tab
     return out
 
 
-def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=None, body=None, cover=None):
+def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=None, body=None, cover=None,
+             flip=None):
     """One MLS-MPM/APIC substep after the stress (CONTRACTS.md steps 1-4, without plasticity).
 
     All in SI: x  # [P, 3] m, v  # [P, 3] m/s at the state's time, C  # [P, 3, 3] 1/s,
@@ -552,6 +554,8 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     body  # [P] long: the rigid body of each row (-1: deformable), cover  # [B] kg: each body's
     covering node mass; with them the grid nodes the bodies cover move with them
     (:func:`_rigid_grid`, the Taichi solver's coupling) and rigid rows read their body's field.
+    flip  # [P] or None: each row's FLIP share (CONTRACTS step 4, ``materials.FLIP_RATIO``; 0 for
+    rigid rows): the velocity gains flip (v - the pre-force grid field at x).
     returns x, v, C, F_trial (each like the input)
     """
     P = x.shape[0]
@@ -598,6 +602,12 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     new_v = (weight[..., None] * gvp).sum(1)
     new_C = 4.0 * inv_dx * inv_dx * torch.einsum("pk,pki,pkj->pij", weight, gvp, dpos)
     new_x = x + dt * new_v
+    if flip is not None and bool((flip > 0).any()):
+        kin = p_mass[:, None, None] * (v[:, None, :] + torch.einsum("pij,pkj->pki", C, dpos))  # [P, 27, 3]
+        grid_o = x.new_zeros((M, 3)).index_add(0, inv, (weight[..., None] * kin).reshape(-1, 3))
+        v_o = grid_o / torch.where(has_mass, grid_m, torch.ones_like(grid_m))[:, None]
+        v_old = (weight[..., None] * v_o[inv].reshape(P, 27, 3)).sum(1)
+        new_v = new_v + flip.to(dtp)[:, None] * (v - v_old)
     new_x, new_v = _project_walls(new_x, new_v, rigid, dx, G, grid)
     I = _eye(P, F)
     F_trial = (I + dt * new_C) @ F
@@ -811,7 +821,10 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
             body = torch.where(table.label == k, torch.full_like(body, b), body)
         dx = L / grid.n_grid
         cover = torch.stack([COVER * table.density[k] * dx ** 3 for k in bodies]).to(F.dtype)
-    x, v, C, F_trial = mpm_step(x0, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid, rigid, body, cover)
+    ratio = torch.as_tensor([0.0 if table.is_rigid(k) else FLIP_RATIO.get(table.plasticity[k], 0.0)
+                             for k in range(table.n_instances)], dtype=F.dtype, device=F.device)
+    x, v, C, F_trial = mpm_step(x0, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid, rigid, body, cover,
+                                ratio[table.label])
     F_new = plastic_projection(F_trial, mu, lam, table)
     idx = _fracturing(table, F.device)
     if idx.numel():

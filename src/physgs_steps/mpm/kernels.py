@@ -338,6 +338,12 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
     return SimpleNamespace(slot=_slot, node_rule=node_rule, ghost=ghost, n_obst=n_obst, n_slots=n_slots)
 
 
+def uses_flip(combos: tuple) -> bool:
+    """Whether a deformable (elasticity, plasticity, fracture) pair of ``combos`` blends FLIP
+    into its G2P (materials.FLIP_RATIO): the substep then needs ``grid_o``."""
+    return any(M.FLIP_RATIO.get(c[1], 0.0) > 0.0 for c in combos if c != M.RIGID_KEY)
+
+
 @functools.lru_cache(maxsize=None)
 def build(spec: Spec) -> SimpleNamespace:
     """The kernels for ``spec`` (built once per process and spec)."""
@@ -345,6 +351,8 @@ def build(spec: Spec) -> SimpleNamespace:
     n_combo = len(spec.combos)
     any_fracture = any(f for _, _, f in spec.combos)
     rigid_cid = spec.combos.index(M.RIGID_KEY) if M.RIGID_KEY in spec.combos else -1
+    any_flip = uses_flip(spec.combos)
+    q_flip = M.COL["flip"]
     n_surf, n_cub, n_acc, n_tra, n_rot = spec.counts
     r_acc = n_surf + n_cub
     r_tra = r_acc + n_acc
@@ -589,7 +597,7 @@ def build(spec: Spec) -> SimpleNamespace:
 
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
-                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
+                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
                 mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32,
                 t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1):
         # the rigid bodies' grid projection (1-element when no instance is rigid): grid_r
@@ -639,6 +647,9 @@ def build(spec: Spec) -> SimpleNamespace:
                 grid_v[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
                 grid_m[c, i, j, k] = 0.0
                 grid_c[c, i, j, k] = 0.0
+                if ti.static(any_flip):
+                    if c == 0:
+                        grid_o[i, j, k] = ti.Vector.zero(ti.f32, 3)
                 if ti.static(rigid_cid >= 0):
                     grid_r[c, i, j, k] = 0
                     grid_rm[c, i, j, k] = 0.0
@@ -670,6 +681,20 @@ def build(spec: Spec) -> SimpleNamespace:
             for p in range(P):
                 _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                               grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+        if ti.static(any_flip):
+            # FLIP materials (materials.FLIP_RATIO): the momenta m (v + C dpos) alone, before the
+            # stress and body-force impulses, so that G2P can tell each particle's own deviation
+            # from the field the grid had before this substep's forces
+            for p in x:
+                base, fx, w = _stencil(x[p], inv_dx, G, err)
+                mass = p_mass[p]
+                mv = mass * v[p]
+                mC = mass * C[p]
+                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                    offset = ti.Vector([i, j, k])
+                    dpos = (ti.cast(offset, ti.f32) - fx) * dx
+                    node = base + offset
+                    grid_o[node[0], node[1], node[2]] += (w[i][0] * w[j][1] * w[k][2]) * (mv + mC @ dpos)
         # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
         for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
             i, j, k0, k1 = _box_run(box, 0, qc)
@@ -845,6 +870,19 @@ def build(spec: Spec) -> SimpleNamespace:
                 new_v += weight * g_v
                 new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
             x_new = xp + dt * new_v
+            if ti.static(any_flip):
+                fr = mparams[m, q_flip]
+                if rigid == 0 and fr > 0.0:
+                    # AFLIP (Fei et al. 2021): the APIC velocity plus the particle's own deviation
+                    # from the pre-force grid field (materials.FLIP_RATIO); the particle still
+                    # moves with, and strains by, the grid field
+                    v_old = ti.Vector.zero(ti.f32, 3)
+                    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                        node = base + ti.Vector([i, j, k])
+                        mn = grid_m[0, node[0], node[1], node[2]]
+                        if mn > 0.0:
+                            v_old += (w[i][0] * w[j][1] * w[k][2] / mn) * grid_o[node[0], node[1], node[2]]
+                    new_v += fr * (v[p] - v_old)
             if held == 1:
                 # inside a cuboid: the particle stays with the cuboid, but carries the field the
                 # ghost nodes extend into it (so stress and momentum stay continuous at the face)

@@ -20,12 +20,21 @@ from .. import materials_kb as kb
 
 # Columns of the per-material parameter table handed to the kernels.
 PARAM_COLUMNS = ("mu", "lam", "density", "yield_stress", "dp_alpha", "cohesion", "j_min", "j_max", "sin_phi",
-                 "fracture_strain", "fracture_softening")
+                 "fracture_strain", "fracture_softening", "flip")
 N_PARAMS = len(PARAM_COLUMNS)
 COL = {name: i for i, name in enumerate(PARAM_COLUMNS)}
 DEFAULT_FRACTURE_SOFTENING = 0.2
 
 PRESET_NAMES = ("jelly", "rubber", "elastomer", "metal", "sand", "snow", "plasticine", "water", "foam", "stone")
+
+# FLIP share of the particle-to-grid-to-particle velocity transfer per plasticity model (the
+# kernels' G2P: v_p <- APIC velocity + flip (v_p - v_p interpolated from the grid before the
+# forces), "AFLIP" of Fei et al. 2021, ACM TOG 40(4)).  0: plain APIC.  Granular flow runs at
+# the elastic CFL, tens of substeps per cell of flow, and APIC smooths the velocity across every
+# shear band at each transfer: that loss is per substep, so a granular collapse ran out shorter
+# the more substeps it took (validation column_collapse notes); keeping the particles' own
+# deviation from the grid field removes it.  Elastic and fluid models keep APIC.
+FLIP_RATIO = {"mohr_coulomb": 0.99, "drucker_prager": 0.99}
 
 RIGID_MODELS = ("rigid", "identity")  # the kernel's (elasticity, plasticity) pair of a rigid instance
 RIGID_KEY = RIGID_MODELS + (False,)  # ... and its kernel key (no fracture)
@@ -180,6 +189,7 @@ class Material:
         row[COL["sin_phi"]] = math.sin(math.radians(self.friction_angle)) if self.friction_angle is not None else 0.0
         row[COL["fracture_strain"]] = self.fracture_strain if self.fracture_strain is not None else 0.0
         row[COL["fracture_softening"]] = self.fracture_softening
+        row[COL["flip"]] = FLIP_RATIO.get(self.plasticity, 0.0)
         return row.astype(np.float32)
 
     @property

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import taichi as ti
 
-from .material import (COL, DEFAULT_FRACTURE_SOFTENING, N_PARAMS, PARAM_COLUMNS, PRESET_NAMES, RIGID_KEY,  # noqa: F401
+from .material import (COL, DEFAULT_FRACTURE_SOFTENING, FLIP_RATIO, N_PARAMS, PARAM_COLUMNS, PRESET_NAMES, RIGID_KEY,  # noqa: F401
                        RIGID_MODELS, VOLUME_GAMMA, Material, dp_alpha, lame, preset)  # noqa: F401
 
 LOG_FLOOR = 1e-6  # logs of singular values and of J use log(max(s, LOG_FLOOR))

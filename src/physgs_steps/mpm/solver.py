@@ -324,6 +324,8 @@ class MPMSolver:
         self.grid_m = ti.ndarray(ti.f32, (T, G, G, G))
         self.grid_c = ti.ndarray(ti.f32, (T, G, G, G))  # 1 where a particle touching an obstacle transfers
         self.grid_b = ti.ndarray(K.vec3, (G, G, G))  # grid velocities after the boundary conditions
+        # FLIP materials (materials.FLIP_RATIO): the pre-force momenta of the substep's P2G
+        self.grid_o = ti.ndarray(K.vec3, (G, G, G) if K.uses_flip(self.combos) else (1, 1, 1))
         self.grid_r = ti.ndarray(ti.i32, (1, 1, 1, 1))  # rigid bodies: 1 + the body covering a node (_setup_rigid)
         self.grid_rm = ti.ndarray(ti.f32, (1, 1, 1, 1))
         self.grid_rv = ti.ndarray(K.vec3, (1, 1, 1, 1))
@@ -482,7 +484,8 @@ class MPMSolver:
             self.resort()
         self._since_sort += 1
         self._launch_substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
-                        self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_r, self.grid_rm, self.grid_rv, self._mbody,
+                        self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b,
+                        self.grid_o, self.grid_r, self.grid_rm, self.grid_rv, self._mbody,
                         self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
                         self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
                         float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]),
