@@ -601,7 +601,8 @@ def build(spec: Spec) -> SimpleNamespace:
         # [T,G,G,G] i32 owner (1 + body; + covered, - fringe), grid_rm [T,G,G,G] and grid_rv
         # [T,G,G,G] vec3 the rigid particles' mass and momentum (then velocity), mbody [K] i32
         # body of each material (-1: none), gpart [G^2 + G, B, N_GSUM] f64 per-column and per-slab sums, gbody
-        # [B, 10] f64 per body: centre, V, omega of its grid field, covering mass (input)
+        # [B, 17] f64 per body: centre, V, omega of its grid field, covering mass (input), the field's
+        # mass and inertia about its centre (xx, yy, zz, xy, xz, yz)
         inv_dx = 1.0 / dx
         n_chunks = grid_m.shape[0]
         G = grid_m.shape[1]
@@ -767,6 +768,7 @@ def build(spec: Spec) -> SimpleNamespace:
                     c0 = ti.Vector.zero(ti.f64, 3)
                     V = ti.Vector.zero(ti.f64, 3)
                     w = ti.Vector.zero(ti.f64, 3)
+                    Ic = ti.Matrix.zero(ti.f64, 3, 3)
                     if acc[0] > 0.0:
                         Mb = acc[0]
                         c0 = ti.Vector([acc[1], acc[2], acc[3]], dt=ti.f64) / Mb
@@ -781,6 +783,14 @@ def build(spec: Spec) -> SimpleNamespace:
                         gbody[b, q] = c0[q]
                         gbody[b, 3 + q] = V[q]
                         gbody[b, 6 + q] = w[q]
+                    # the field's mass and inertia about c0 (the contact solve on the grid, rigid.py)
+                    gbody[b, 10] = acc[0]
+                    gbody[b, 11] = Ic[0, 0]
+                    gbody[b, 12] = Ic[1, 1]
+                    gbody[b, 13] = Ic[2, 2]
+                    gbody[b, 14] = Ic[0, 1]
+                    gbody[b, 15] = Ic[0, 2]
+                    gbody[b, 16] = Ic[1, 2]
         if ti.static(part != 1):
             if ti.static(rigid_cid >= 0):
                 # covered nodes take their body's field (after the contact solve on the grid when

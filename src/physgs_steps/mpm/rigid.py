@@ -26,11 +26,12 @@ is perfectly inelastic, as between any two MPM materials.
 
 The covered nodes take the body's field *after its contact solve*.  A substep with free
 bodies runs the MPM kernel in two launches (kernels.py ``part`` 1 and 2): the first ends with
-the bodies' grid fields (gbody: centre c0, V, omega of the covered nodes and the fringe's
-rigid mass); then each field goes through the body's contact solve (step 2 below, with the
-body's own mass and inertia, V taken at its centre of mass: ``advance`` with ``pre``, which
-moves nothing), and the second launch gives the covered nodes the solved field and runs the
-boundaries and G2P.  The contacts depend only on the pose at the start of the substep, so
+the bodies' grid fields (gbody: centre c0, V, omega, mass and inertia about c0 of the covered
+nodes and the fringe's rigid mass); then each field goes through the body's contact solve
+(step 2 below, ``advance`` with ``pre``, which moves nothing) with the field's mass and inertia
+(the soft material on the covered nodes moves with the field, so the contacts hold it too),
+and the second launch gives the covered nodes the solved field and runs the boundaries and
+G2P.  The contacts depend only on the pose at the start of the substep, so
 they are found before the first launch (``reduce`` with ``what`` 1).  After G2P the solve
 runs again on the momentum the particles carry (steps 1-2; the field already meets the
 contacts, so it has next to nothing left to do, except where another body's nodes changed
@@ -258,16 +259,37 @@ def _shift(ct: ti.template(), work: ti.template(), win: ti.template(), b, cap, u
 
 
 @ti.func
-def _start_vw(part: ti.template(), gbody: ti.template(), body_c: ti.template(), b, T, M, Iinv, pre: ti.template()):
-    """Body b's velocity (V, omega) before its contact solve: from the chunks' momentum sums
-    (part, after G2P), or with ``pre`` from its grid field (gbody: centre c0, V at c0, omega),
-    V taken at the body's centre of mass."""
+def _body_mass(body_M: ti.template(), body_R: ti.template(), body_I0inv: ti.template(), gbody: ti.template(),
+               body_c: ti.template(), b, pre: ti.template()):
+    """What body b's contact solve moves: (M, I^-1 in the current pose, roff: the offset of the
+    body's centre of mass from the solve's reference point, added to the contacts' arms).  The
+    body itself (reference: its centre of mass), or with ``pre`` its grid field: the covered
+    nodes' mass and inertia about their centre c0 (gbody, kernels.py), the body's own soft
+    load included, which moves with the solved field."""
+    M = body_M[b]
+    R = body_R[b]
+    Iinv = R @ body_I0inv[b] @ R.transpose()
+    roff = ti.Vector.zero(ti.f64, 3)
+    if ti.static(pre):
+        if gbody[b, 10] > 0.0:
+            M = gbody[b, 10]
+            Ig = ti.Matrix([[gbody[b, 11], gbody[b, 14], gbody[b, 15]], [gbody[b, 14], gbody[b, 12], gbody[b, 16]],
+                            [gbody[b, 15], gbody[b, 16], gbody[b, 13]]], dt=ti.f64)
+            Iinv = Ig.inverse()
+            roff = body_c[b] - ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
+    return M, Iinv, roff
+
+
+@ti.func
+def _start_vw(part: ti.template(), gbody: ti.template(), b, T, M, Iinv, pre: ti.template()):
+    """Body b's velocity (V at the reference point of :func:`_body_mass`, omega) before its
+    contact solve: from the chunks' momentum sums (part, after G2P), or with ``pre`` its grid
+    field (gbody: V at c0, omega)."""
     V = ti.Vector.zero(ti.f64, 3)
     w = ti.Vector.zero(ti.f64, 3)
     if ti.static(pre):
-        c0 = ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
         w = ti.Vector([gbody[b, 6], gbody[b, 7], gbody[b, 8]], dt=ti.f64)
-        V = ti.Vector([gbody[b, 3], gbody[b, 4], gbody[b, 5]], dt=ti.f64) + w.cross(body_c[b] - c0)
+        V = ti.Vector([gbody[b, 3], gbody[b, 4], gbody[b, 5]], dt=ti.f64)
     else:
         P = ti.Vector.zero(ti.f64, 3)
         Lm = ti.Vector.zero(ti.f64, 3)
@@ -281,12 +303,10 @@ def _start_vw(part: ti.template(), gbody: ti.template(), body_c: ti.template(), 
 
 
 @ti.func
-def _grid_vw(gbody: ti.template(), body_c: ti.template(), b, V, w):
-    """Body b's solved velocity (V at its centre of mass, omega) back into its grid field."""
-    c0 = ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
-    Vc = V - w.cross(body_c[b] - c0)
+def _grid_vw(gbody: ti.template(), b, V, w):
+    """Body b's solved field (V at c0, omega) back into gbody."""
     for q in ti.static(range(3)):
-        gbody[b, 3 + q] = Vc[q]
+        gbody[b, 3 + q] = V[q]
         gbody[b, 6 + q] = w[q]
 
 
@@ -436,10 +456,9 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
         B = part.shape[1]
         ti.loop_config(serialize=True)
         for b in range(B):
-            M = body_M[b]
             R = body_R[b]
-            Iinv = R @ body_I0inv[b] @ R.transpose()
-            V, w = _start_vw(part, gbody, body_c, b, T, M, Iinv, pre)
+            M, Iinv, roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
+            V, w = _start_vw(part, gbody, b, T, M, Iinv, pre)
             # contacts: projected Gauss-Seidel with accumulated impulses
             for c in range(T):
                 for j in range(ct_count[c]):
@@ -450,6 +469,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                     for j in range(ct_count[c]):
                         if ti.cast(ct[c, j, 0], ti.i32) == b:
                             r, n, phi, vc, kind, fric, region = _contact(ct, c, j)
+                            r += roff
                             u = V + w.cross(r) - vc
                             if region > 0.5 or (kind < 0.5 and phi <= 0.0):
                                 # stick: u = 0 at the contact (K^-1 with K = Id / M - [r]x I^-1 [r]x)
@@ -490,7 +510,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                                         V += d / M
                                         w += Iinv @ r.cross(d)
             if ti.static(pre):
-                _grid_vw(gbody, body_c, b, V, w)
+                _grid_vw(gbody, b, V, w)
             else:
                 Lm = (Iinv.inverse()) @ w
                 # advance the pose
@@ -536,9 +556,8 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
             ncb = ti.cast(0.0, ti.f64)
             for c in range(T):
                 ncb += part[c, b, 6]
-            R = body_R[b]
-            Iinv = R @ body_I0inv[b] @ R.transpose()
-            V, w = _start_vw(part, gbody, body_c, b, T, body_M[b], Iinv, pre)
+            M, Iinv, _roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
+            V, w = _start_vw(part, gbody, b, T, M, Iinv, pre)
             for q in ti.static(range(3)):
                 work[b, _W_V + q] = V[q]
                 work[b, _W_W + q] = w[q]
@@ -557,15 +576,14 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                 j = i - c * cap
                 if j < ct_count[c]:
                     b = ti.cast(ct[c, j, 0], ti.i32)
-                    M = body_M[b]
-                    R = body_R[b]
-                    Iinv = R @ body_I0inv[b] @ R.transpose()
+                    M, Iinv, roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
                     V, w = _jacobi_vw(work, jac, b, M, Iinv, it)
                     # mass splitting: this contact's share of the body, mass M / n, inertia I / n
                     ns = work[b, _W_N]
                     Ms = M / ns
                     Is = Iinv * ns
                     r, n, phi, vc, kind, fric, region = _contact(ct, c, j)
+                    r += roff
                     u = V + w.cross(r) - vc
                     imp = ti.Vector.zero(ti.f64, 3)  # this iteration's impulse at the contact
                     if region > 0.5 or (kind < 0.5 and phi <= 0.0):
@@ -619,9 +637,9 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                         ti.atomic_add(jac[b, it, 3 + q], ang[q])
         if ti.static(pre):
             for b in range(B):
-                R = body_R[b]
-                V, w = _jacobi_vw(work, jac, b, body_M[b], R @ body_I0inv[b] @ R.transpose(), JACOBI_ITERS)
-                _grid_vw(gbody, body_c, b, V, w)
+                M, Iinv, _roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
+                V, w = _jacobi_vw(work, jac, b, M, Iinv, JACOBI_ITERS)
+                _grid_vw(gbody, b, V, w)
         else:
             for b in range(B):  # the velocities after the solve, the new pose before the position passes
                 M = body_M[b]

@@ -262,7 +262,7 @@ class MPMSolver:
         self._gpart = ti.ndarray(ti.f64, (G * G + G if grids else 1, nb, K.N_GSUM))  # per column, slab, body: grid sums
         self.grid_rm = ti.ndarray(ti.f32, (T, G, G, G) if grids else (1, 1, 1, 1))  # rigid mass per node
         self.grid_rv = ti.ndarray(K.vec3, (T, G, G, G) if grids else (1, 1, 1, 1))  # rigid momentum, velocity
-        gbody = np.zeros((nb, 10))  # per body: centre, V, omega of the covered nodes; covering mass
+        gbody = np.zeros((nb, 17))  # per body: centre, V, omega of the covered nodes; covering mass; their mass, inertia
         gbody[: len(free), 9] = [colliders.COVER * self.materials[k].density * self.dx ** 3 for k in free]
         self._gbody = _ndarray_from(gbody, ti.f64)
         if free:
