@@ -2,6 +2,8 @@
 of a spinning free body, fixed bodies, rest on the ground, the time step, static geometry."""
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,10 @@ from physgs_steps.errors import ConfigError, InputError
 from physgs_steps.mpm import Dynamics, Material, MPMSolver, StaticGeometry
 from physgs_steps.mpm import colliders
 from physgs_steps.mpm import rigid as rigid_mod
+from physgs_steps.mpm.rest import RestPolicy
+from physgs_steps.mpm.runner import run_frames
+from physgs_steps.mpm.stability import Thresholds
+from physgs_steps.mpm.timestep import TimeStepper
 
 STONE = Material("fixed_corotated", "identity", E=2.0e7, nu=0.25, density=2600.0, name="stone", rigid=True)
 JELLY = Material("fixed_corotated", "identity", E=5.0e4, nu=0.3, density=1000.0, name="jelly")
@@ -320,3 +326,44 @@ def test_fast_launch_gives_bitwise_the_plain_calls(solve, monkeypatch):
     for k in ("c", "R", "V", "omega"):
         assert np.array_equal(rb0[k], rb1[k]), k
     assert np.abs(st1["v"]).max() > 0.05  # something moved
+
+
+def test_soft_block_rests_on_a_free_rigid_slab_and_the_rest_hold_takes_it(solve):
+    """A jelly block dropped onto a free rigid slab lying on the ground settles on it and stays
+    (like a jelly on the ground or on a fixed slab), every particle falls below the rest speed
+    and the frame loop holds the scene.  Before the contact solve ran on the grid (rigid.py
+    "Coupling"), the nodes the jelly shares with the slab moved with the slab's velocity
+    *before* its ground contact (g dt and the jelly's weight pushing down) while the slab itself
+    was stopped: here the jelly crept into the slab at 0.04 m/s (the gap closed 0.13 dx every
+    0.2 s, the jelly's lowest particles passed the slab's top ones at 1.4 s and went on) and
+    never came to rest."""
+    s = 1 / 32
+    h = 0.125
+    xs = box([0.25, 0.25, h], [0.75, 0.75, h + 0.125], s)          # free rigid slab on the ground
+    top = h + 0.125
+    xj = box([0.375, 0.375, top + 0.02], [0.625, 0.625, top + 0.02 + 0.1875], s)  # jelly 2 cm above it
+    x = np.r_[xs, xj]
+    mat = np.r_[np.zeros(len(xs), int), np.ones(len(xj), int)]
+    dyn = Dynamics.from_config({"ground": {"height": h, "friction": 0.5, "surface": "separate"}, "damping": 8.0})
+    sol = MPMSolver([STONE.with_(name="slab", friction=0.5), JELLY], n_grid=16, dynamics=dyn, backend="cpu")
+    sol.set_particles(x, np.full(len(x), s ** 3), mat)
+    assert sol.roles() == ["rigid", "deformable"]
+    jelly = mat == 1
+    gap, v_soft = [], []
+
+    def frame(k, t, dt):
+        st = sol.get_state()
+        gap.append(st["x"][jelly, 2].min() - st["x"][~jelly, 2].max())
+        v_soft.append(np.linalg.norm(sol.v.to_numpy(), axis=1).max())  # what the rest check reads (stats)
+
+    policy = RestPolicy.from_config({"speed": 0.01, "duration": 0.3}, dyn)
+    res = run_frames(sol, 48, TimeStepper(fps=30.0, max_substeps=40), Thresholds(), frame, logging.getLogger("t"),
+                     rest=policy, on_hold=lambda k, t: None)
+    print(f"gap/dx {np.round(np.array(gap[::6]) * 16, 3)}, v_max {np.round(v_soft[::6], 4)}, rest {res.rest}")
+    assert res.stable
+    body = sol.rigid.state()
+    assert np.abs(body["V"]).max() < 1e-3 and np.abs(body["omega"]).max() < 1e-2  # the slab stays put
+    assert min(gap) > 0.0  # the jelly never gets into the slab (before: 0.08 dx into it at 1.6 s)
+    late = np.array(gap[24:])  # from 0.8 s on: settled, no creep
+    assert late.max() - late.min() < 0.02 * (1 / 16), late * 16
+    assert res.rest and res.held_frames > 0 and res.rest[0]["time"] < 1.3, (res.rest, v_soft[-10:])

@@ -599,329 +599,349 @@ def build(spec: Spec) -> SimpleNamespace:
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
                 grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
                 mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32,
-                t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1):
+                t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1,
+                part: ti.template()):
+        # part (compile-time): 0 the whole substep; with free rigid bodies it runs as two launches
+        # around their contact solve on the grid (rigid.py "Coupling"): 1 up to the bodies' grid
+        # fields (P2G, grid update part 1, gbody), 2 the rest (covered nodes <- the fields after the
+        # contact solve, boundaries, G2P)
         # the rigid bodies' grid projection (1-element when no instance is rigid): grid_r
         # [T,G,G,G] i32 owner (1 + body; + covered, - fringe), grid_rm [T,G,G,G] and grid_rv
         # [T,G,G,G] vec3 the rigid particles' mass and momentum (then velocity), mbody [K] i32
         # body of each material (-1: none), gpart [G^2 + G, B, N_GSUM] f64 per-column and per-slab sums, gbody
-        # [B, 10] f64 per body: centre, V, omega of its grid field, covering mass (input)
+        # [B, 17] f64 per body: centre, V, omega of its grid field, covering mass (input), the field's
+        # mass and inertia about its centre (xx, yy, zz, xy, xz, yz)
         inv_dx = 1.0 / dx
         n_chunks = grid_m.shape[0]
         G = grid_m.shape[1]
         L = dx * ti.cast(G, ti.f32)
         P = x.shape[0]
-        # node box (module docs "Node box"): row 0 the nodes this substep's particles reach (every node loop
-        # below runs over it), row 1 last substep's, row 2 their union (cleared); CUDA: the grid
-        if ti.static(private_grid):
-            for c in range(n_chunks):  # per chunk of particles, rows 3 + c
-                lo = ti.Vector([G, G, G])
-                hi = ti.Vector([-1, -1, -1])
-                for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-                    base = ti.min(ti.max(ti.cast(ti.floor(x[p] * inv_dx - 0.5), ti.i32), 0), G - 3)
-                    lo = ti.min(lo, base)
-                    hi = ti.max(hi, base)
-                for a in ti.static(range(3)):
-                    box[3 + c, a] = lo[a]
-                    box[3 + c, 3 + a] = hi[a] + 3
-        ti.loop_config(serialize=True)
-        for a in range(3):
-            box[1, a] = box[0, a]
-            box[1, 3 + a] = box[0, 3 + a]
-            lo = 0
-            hi = G
+        if ti.static(part != 2):
+            # node box (module docs "Node box"): row 0 the nodes this substep's particles reach (every node loop
+            # below runs over it), row 1 last substep's, row 2 their union (cleared); CUDA: the grid
             if ti.static(private_grid):
-                lo = G
-                hi = 0
-                for c in range(n_chunks):
-                    lo = ti.min(lo, box[3 + c, a])
-                    hi = ti.max(hi, box[3 + c, 3 + a])
-                hi = ti.max(hi, lo)
-            box[0, a] = lo
-            box[0, 3 + a] = hi
-            box[2, a] = ti.min(lo, box[1, a])
-            box[2, 3 + a] = ti.max(hi, box[1, 3 + a])
-        for qc in range(n_chunks * _box_runs(box, 2)):  # per chunk, the union box's columns (CUDA: nodes)
-            c = qc // _box_runs(box, 2)
-            i, j, k0, k1 = _box_run(box, 2, qc % _box_runs(box, 2))
-            for k in range(k0, k1):
-                grid_v[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
-                grid_m[c, i, j, k] = 0.0
-                grid_c[c, i, j, k] = 0.0
-                if ti.static(any_flip):
-                    if c == 0:
-                        grid_o[i, j, k] = ti.Vector.zero(ti.f32, 3)
-                if ti.static(rigid_cid >= 0):
-                    grid_r[c, i, j, k] = 0
-                    grid_rm[c, i, j, k] = 0.0
-                    grid_rv[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
-        # P2G
-        if ti.static(coarsened and private_grid):
-            for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
-                _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_mass, mat, mcombo,
-                          act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
-                          inv_dx, G, L, wall)
-        elif ti.static(coarsened and run == P2G.CELL):
-            for k in range(cell_start.shape[0] - 1):  # one thread per cell of the last sort
-                p0 = cell_start[k]
-                p1 = cell_start[k + 1]
-                if p1 > p0:
-                    _p2g_runs(p0, p1, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
-                              mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
-        elif ti.static(coarsened):
-            for r in range((P + run - 1) // run):  # one thread per `run` consecutive particles
-                _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_mass, mat, mcombo,
-                          act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
-                          inv_dx, G, L, wall)
-        elif ti.static(private_grid):
-            for c in range(n_chunks):  # parallel over chunks, serial inside a chunk
-                for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-                    _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                for c in range(n_chunks):  # per chunk of particles, rows 3 + c
+                    lo = ti.Vector([G, G, G])
+                    hi = ti.Vector([-1, -1, -1])
+                    for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
+                        base = ti.min(ti.max(ti.cast(ti.floor(x[p] * inv_dx - 0.5), ti.i32), 0), G - 3)
+                        lo = ti.min(lo, base)
+                        hi = ti.max(hi, base)
+                    for a in ti.static(range(3)):
+                        box[3 + c, a] = lo[a]
+                        box[3 + c, 3 + a] = hi[a] + 3
+            ti.loop_config(serialize=True)
+            for a in range(3):
+                box[1, a] = box[0, a]
+                box[1, 3 + a] = box[0, 3 + a]
+                lo = 0
+                hi = G
+                if ti.static(private_grid):
+                    lo = G
+                    hi = 0
+                    for c in range(n_chunks):
+                        lo = ti.min(lo, box[3 + c, a])
+                        hi = ti.max(hi, box[3 + c, 3 + a])
+                    hi = ti.max(hi, lo)
+                box[0, a] = lo
+                box[0, 3 + a] = hi
+                box[2, a] = ti.min(lo, box[1, a])
+                box[2, 3 + a] = ti.max(hi, box[1, 3 + a])
+            for qc in range(n_chunks * _box_runs(box, 2)):  # per chunk, the union box's columns (CUDA: nodes)
+                c = qc // _box_runs(box, 2)
+                i, j, k0, k1 = _box_run(box, 2, qc % _box_runs(box, 2))
+                for k in range(k0, k1):
+                    grid_v[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
+                    grid_m[c, i, j, k] = 0.0
+                    grid_c[c, i, j, k] = 0.0
+                    if ti.static(any_flip):
+                        if c == 0:
+                            grid_o[i, j, k] = ti.Vector.zero(ti.f32, 3)
+                    if ti.static(rigid_cid >= 0):
+                        grid_r[c, i, j, k] = 0
+                        grid_rm[c, i, j, k] = 0.0
+                        grid_rv[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
+            # P2G
+            if ti.static(coarsened and private_grid):
+                for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
+                    _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                              act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
+                              inv_dx, G, L, wall)
+            elif ti.static(coarsened and run == P2G.CELL):
+                for k in range(cell_start.shape[0] - 1):  # one thread per cell of the last sort
+                    p0 = cell_start[k]
+                    p1 = cell_start[k + 1]
+                    if p1 > p0:
+                        _p2g_runs(p0, p1, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                                  mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+            elif ti.static(coarsened):
+                for r in range((P + run - 1) // run):  # one thread per `run` consecutive particles
+                    _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                              act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
+                              inv_dx, G, L, wall)
+            elif ti.static(private_grid):
+                for c in range(n_chunks):  # parallel over chunks, serial inside a chunk
+                    for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
+                        _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                                      grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+            else:
+                for p in range(P):
+                    _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                                   grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
-        else:
-            for p in range(P):
-                _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
-                              grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
-        if ti.static(any_flip):
-            # FLIP materials (materials.FLIP_RATIO): the momenta m (v + C dpos) alone, before the
-            # stress and body-force impulses, so that G2P can tell each particle's own deviation
-            # from the field the grid had before this substep's forces
+            if ti.static(any_flip):
+                # FLIP materials (materials.FLIP_RATIO): the momenta m (v + C dpos) alone, before the
+                # stress and body-force impulses, so that G2P can tell each particle's own deviation
+                # from the field the grid had before this substep's forces
+                for p in x:
+                    base, fx, w = _stencil(x[p], inv_dx, G, err)
+                    mass = p_mass[p]
+                    mv = mass * v[p]
+                    mC = mass * C[p]
+                    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                        offset = ti.Vector([i, j, k])
+                        dpos = (ti.cast(offset, ti.f32) - fx) * dx
+                        node = base + offset
+                        grid_o[node[0], node[1], node[2]] += (w[i][0] * w[j][1] * w[k][2]) * (mv + mC @ dpos)
+            # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
+            for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
+                i, j, k0, k1 = _box_run(box, 0, qc)
+                for k in range(k0, k1):
+                    m = grid_m[0, i, j, k]
+                    mom = grid_v[0, i, j, k]
+                    touch = grid_c[0, i, j, k]
+                    if ti.static(private_grid):
+                        for c in range(1, n_chunks):
+                            m += grid_m[c, i, j, k]
+                            mom += grid_v[c, i, j, k]
+                            touch += grid_c[c, i, j, k]
+                    grid_c[0, i, j, k] = touch
+                    if ti.static(rigid_cid >= 0):
+                        owner = grid_r[0, i, j, k]
+                        rm = grid_rm[0, i, j, k]
+                        rmom = grid_rv[0, i, j, k]
+                        if ti.static(private_grid):
+                            for c in range(1, n_chunks):
+                                owner = ti.max(owner, grid_r[c, i, j, k])
+                                rm += grid_rm[c, i, j, k]
+                                rmom += grid_rv[c, i, j, k]
+                        rv = ti.Vector.zero(ti.f32, 3)
+                        if rm > 0.0:
+                            rv = rmom / rm + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
+                            if ti.static(damping):
+                                rv *= damp
+                        if owner > 0:  # covered by the body, or in its fringe (-owner): see the coupling below
+                            if rm < gbody[owner - 1, 9]:
+                                owner = -owner
+                        grid_r[0, i, j, k] = owner
+                        grid_rm[0, i, j, k] = rm
+                        grid_rv[0, i, j, k] = rv
+                    gv = ti.Vector.zero(ti.f32, 3)
+                    if m > 0.0:
+                        gv = mom / m + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
+                        if ti.static(damping):
+                            gv *= damp
+                    grid_m[0, i, j, k] = m
+                    grid_v[0, i, j, k] = gv
+            if ti.static(rigid_cid >= 0):
+                # rigid bodies as moving colliders (rigid.py "Coupling"): a node where a body's
+                # particles transfer is covered by it where the rigid mass there is at least gbody[b, 9]
+                # (half that of a node inside it: the nodes inside its surface), else in its fringe.
+                # The body takes the whole momentum and angular momentum of the nodes it covers (its
+                # own, the soft material's there, the stress impulses) and of the rigid mass in its
+                # fringe; covered nodes then move with its rigid motion, fringe nodes keep the soft
+                # material's own velocity (the rigid particles read the body's field there)
+                # fringe (the rigid mass below gbody[b, 9]) marked -(1 + b) in grid update part 1
+                B = gbody.shape[0]
+                # sums in a fixed order (reproducible), parallel enough for a GPU: per (x, y) column
+                # over z into gpart[i G + j], then per x slab over y into gpart[G^2 + i], then over x
+                # (over the node box: outside it no node has mass)
+                for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns
+                    i, j, k0, k1 = _box_column(box, 0, qc)
+                    cix = i * G + j
+                    for b in range(B):
+                        for q in ti.static(range(N_GSUM)):
+                            gpart[cix, b, q] = 0.0
+                    for k in range(k0, k1):
+                        o = grid_r[0, i, j, k]
+                        m = ti.cast(grid_m[0, i, j, k], ti.f64)
+                        vn = ti.cast(grid_v[0, i, j, k], ti.f64)
+                        if o < 0:
+                            m = ti.cast(grid_rm[0, i, j, k], ti.f64)
+                            vn = ti.cast(grid_rv[0, i, j, k], ti.f64)
+                        if o != 0 and m > 0.0:
+                            b = ti.abs(o) - 1
+                            xn = ti.Vector([i, j, k], dt=ti.f64) * ti.cast(dx, ti.f64)
+                            xv = xn.cross(vn)
+                            row = [m, m * xn[0], m * xn[1], m * xn[2], m * vn[0], m * vn[1], m * vn[2], m * xv[0],
+                                   m * xv[1], m * xv[2], m * xn[0] * xn[0], m * xn[1] * xn[1], m * xn[2] * xn[2],
+                                   m * xn[0] * xn[1], m * xn[0] * xn[2], m * xn[1] * xn[2]]
+                            for q in ti.static(range(N_GSUM)):
+                                gpart[cix, b, q] += row[q]
+                for i in range(box[0, 0], box[0, 3]):
+                    for b in range(B):
+                        for q in ti.static(range(N_GSUM)):
+                            acc_s = ti.cast(0.0, ti.f64)
+                            for j in range(box[0, 1], box[0, 4]):
+                                acc_s += gpart[i * G + j, b, q]
+                            gpart[G * G + i, b, q] = acc_s
+                ti.loop_config(serialize=True)
+                for b in range(B):
+                    acc = ti.Vector.zero(ti.f64, N_GSUM)
+                    for i in range(box[0, 0], box[0, 3]):
+                        for q in ti.static(range(N_GSUM)):
+                            acc[q] += gpart[G * G + i, b, q]
+                    c0 = ti.Vector.zero(ti.f64, 3)
+                    V = ti.Vector.zero(ti.f64, 3)
+                    w = ti.Vector.zero(ti.f64, 3)
+                    Ic = ti.Matrix.zero(ti.f64, 3, 3)
+                    if acc[0] > 0.0:
+                        Mb = acc[0]
+                        c0 = ti.Vector([acc[1], acc[2], acc[3]], dt=ti.f64) / Mb
+                        Pb = ti.Vector([acc[4], acc[5], acc[6]], dt=ti.f64)
+                        V = Pb / Mb
+                        Lc = ti.Vector([acc[7], acc[8], acc[9]], dt=ti.f64) - c0.cross(Pb)  # about c0
+                        S = ti.Matrix([[acc[10], acc[13], acc[14]], [acc[13], acc[11], acc[15]],
+                                       [acc[14], acc[15], acc[12]]], dt=ti.f64) - Mb * c0.outer_product(c0)
+                        Ic = (S[0, 0] + S[1, 1] + S[2, 2]) * ti.Matrix.identity(ti.f64, 3) - S
+                        w = Ic.inverse() @ Lc
+                    for q in ti.static(range(3)):
+                        gbody[b, q] = c0[q]
+                        gbody[b, 3 + q] = V[q]
+                        gbody[b, 6 + q] = w[q]
+                    # the field's mass and inertia about c0 (the contact solve on the grid, rigid.py)
+                    gbody[b, 10] = acc[0]
+                    gbody[b, 11] = Ic[0, 0]
+                    gbody[b, 12] = Ic[1, 1]
+                    gbody[b, 13] = Ic[2, 2]
+                    gbody[b, 14] = Ic[0, 1]
+                    gbody[b, 15] = Ic[0, 2]
+                    gbody[b, 16] = Ic[1, 2]
+        if ti.static(part != 1):
+            if ti.static(rigid_cid >= 0):
+                # covered nodes take their body's field (after the contact solve on the grid when
+                # the substep runs in two parts), fringe nodes the soft material's own velocity
+                for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes)
+                    i, j, k0, k1 = _box_run(box, 0, qc)
+                    for k in range(k0, k1):
+                        o = grid_r[0, i, j, k]
+                        m = grid_m[0, i, j, k]
+                        if o != 0 and m > 0.0:
+                            vb = _body_field(ti.abs(o) - 1, ti.Vector([i, j, k]), dx, gbody)
+                            if o > 0:
+                                grid_v[0, i, j, k] = vb
+                            else:  # fringe: the soft material's own momentum (none: the body's field)
+                                rm = grid_rm[0, i, j, k]
+                                out = vb
+                                if m - rm > FRINGE_SOFT * m:
+                                    out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
+                                grid_v[0, i, j, k] = out
+            # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
+            for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
+                i, j, k0, k1 = _box_run(box, 0, qc)
+                for k in range(k0, k1):
+                    gv = grid_v[0, i, j, k]
+                    if grid_m[0, i, j, k] > 0.0:
+                        gv0 = gv  # before any boundary (front-band friction reads its own push on it)
+                        pushed = ti.Vector.zero(ti.f32, 3)
+                        I = ti.Vector([i, j, k])
+                        xn = ti.cast(I, ti.f32) * dx
+                        engaged = grid_c[0, i, j, k] > 0.0
+                        for s in range(n_slots):
+                            active, phi, n, vc, kind, fric = col.slot(s, xn, I, True, t, dx, L, wall, dyn, lvl_phi, lvl_id,
+                                                                      lvl_rows)
+                            # obstacles act where material touches them, on the nodes behind them and
+                            # those in front whose support holds the surface; cuboids (holding regions)
+                            # on every node inside, their mirrors beyond the held particles' reach
+                            if active == 1:
+                                if s < n_obst:
+                                    if engaged and phi < FRONT_BAND * dx:
+                                        gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, FRONT_BAND,
+                                                               0.0, grid_v, grid_m)
+                                elif phi < 0.0:
+                                    gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, HELD_REACH,
+                                                           MIRROR_MASS * grid_m[0, i, j, k], grid_v, grid_m)
+                    grid_b[i, j, k] = gv
+            # G2P, F update, return map, stress of the new F; boundaries on deformable particles
             for p in x:
-                base, fx, w = _stencil(x[p], inv_dx, G, err)
-                mass = p_mass[p]
-                mv = mass * v[p]
-                mC = mass * C[p]
+                xp = x[p]
+                m = mat[p]
+                rigid = _is_rigid(m, mcombo)
+                held = 0
+                hv = ti.Vector.zero(ti.f32, 3)
+                if ti.static(n_cub > 0):
+                    if rigid == 0:
+                        held, hv = _held(xp, t, dyn)
+                base, fx, w = _stencil(xp, inv_dx, G, err)
+                new_v = ti.Vector.zero(ti.f32, 3)
+                new_C = ti.Matrix.zero(ti.f32, 3, 3)
                 for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
                     offset = ti.Vector([i, j, k])
                     dpos = (ti.cast(offset, ti.f32) - fx) * dx
                     node = base + offset
-                    grid_o[node[0], node[1], node[2]] += (w[i][0] * w[j][1] * w[k][2]) * (mv + mC @ dpos)
-        # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
-        for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
-            i, j, k0, k1 = _box_run(box, 0, qc)
-            for k in range(k0, k1):
-                m = grid_m[0, i, j, k]
-                mom = grid_v[0, i, j, k]
-                touch = grid_c[0, i, j, k]
-                if ti.static(private_grid):
-                    for c in range(1, n_chunks):
-                        m += grid_m[c, i, j, k]
-                        mom += grid_v[c, i, j, k]
-                        touch += grid_c[c, i, j, k]
-                grid_c[0, i, j, k] = touch
-                if ti.static(rigid_cid >= 0):
-                    owner = grid_r[0, i, j, k]
-                    rm = grid_rm[0, i, j, k]
-                    rmom = grid_rv[0, i, j, k]
-                    if ti.static(private_grid):
-                        for c in range(1, n_chunks):
-                            owner = ti.max(owner, grid_r[c, i, j, k])
-                            rm += grid_rm[c, i, j, k]
-                            rmom += grid_rv[c, i, j, k]
-                    rv = ti.Vector.zero(ti.f32, 3)
-                    if rm > 0.0:
-                        rv = rmom / rm + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
-                        if ti.static(damping):
-                            rv *= damp
-                    if owner > 0:  # covered by the body, or in its fringe (-owner): see the coupling below
-                        if rm < gbody[owner - 1, 9]:
-                            owner = -owner
-                    grid_r[0, i, j, k] = owner
-                    grid_rm[0, i, j, k] = rm
-                    grid_rv[0, i, j, k] = rv
-                gv = ti.Vector.zero(ti.f32, 3)
-                if m > 0.0:
-                    gv = mom / m + dt * ti.Vector([gx, gy, gz], dt=ti.f32)
-                    if ti.static(damping):
-                        gv *= damp
-                grid_m[0, i, j, k] = m
-                grid_v[0, i, j, k] = gv
-        if ti.static(rigid_cid >= 0):
-            # rigid bodies as moving colliders (rigid.py "Coupling"): a node where a body's
-            # particles transfer is covered by it where the rigid mass there is at least gbody[b, 9]
-            # (half that of a node inside it: the nodes inside its surface), else in its fringe.
-            # The body takes the whole momentum and angular momentum of the nodes it covers (its
-            # own, the soft material's there, the stress impulses) and of the rigid mass in its
-            # fringe; covered nodes then move with its rigid motion, fringe nodes keep the soft
-            # material's own velocity (the rigid particles read the body's field there)
-            # fringe (the rigid mass below gbody[b, 9]) marked -(1 + b) in grid update part 1
-            B = gbody.shape[0]
-            # sums in a fixed order (reproducible), parallel enough for a GPU: per (x, y) column
-            # over z into gpart[i G + j], then per x slab over y into gpart[G^2 + i], then over x
-            # (over the node box: outside it no node has mass)
-            for qc in range(_box_columns(box, 0)):  # the box's (x, y) columns
-                i, j, k0, k1 = _box_column(box, 0, qc)
-                cix = i * G + j
-                for b in range(B):
-                    for q in ti.static(range(N_GSUM)):
-                        gpart[cix, b, q] = 0.0
-                for k in range(k0, k1):
-                    o = grid_r[0, i, j, k]
-                    m = ti.cast(grid_m[0, i, j, k], ti.f64)
-                    vn = ti.cast(grid_v[0, i, j, k], ti.f64)
-                    if o < 0:
-                        m = ti.cast(grid_rm[0, i, j, k], ti.f64)
-                        vn = ti.cast(grid_rv[0, i, j, k], ti.f64)
-                    if o != 0 and m > 0.0:
-                        b = ti.abs(o) - 1
-                        xn = ti.Vector([i, j, k], dt=ti.f64) * ti.cast(dx, ti.f64)
-                        xv = xn.cross(vn)
-                        row = [m, m * xn[0], m * xn[1], m * xn[2], m * vn[0], m * vn[1], m * vn[2], m * xv[0],
-                               m * xv[1], m * xv[2], m * xn[0] * xn[0], m * xn[1] * xn[1], m * xn[2] * xn[2],
-                               m * xn[0] * xn[1], m * xn[0] * xn[2], m * xn[1] * xn[2]]
-                        for q in ti.static(range(N_GSUM)):
-                            gpart[cix, b, q] += row[q]
-            for i in range(box[0, 0], box[0, 3]):
-                for b in range(B):
-                    for q in ti.static(range(N_GSUM)):
-                        acc_s = ti.cast(0.0, ti.f64)
-                        for j in range(box[0, 1], box[0, 4]):
-                            acc_s += gpart[i * G + j, b, q]
-                        gpart[G * G + i, b, q] = acc_s
-            ti.loop_config(serialize=True)
-            for b in range(B):
-                acc = ti.Vector.zero(ti.f64, N_GSUM)
-                for i in range(box[0, 0], box[0, 3]):
-                    for q in ti.static(range(N_GSUM)):
-                        acc[q] += gpart[G * G + i, b, q]
-                c0 = ti.Vector.zero(ti.f64, 3)
-                V = ti.Vector.zero(ti.f64, 3)
-                w = ti.Vector.zero(ti.f64, 3)
-                if acc[0] > 0.0:
-                    Mb = acc[0]
-                    c0 = ti.Vector([acc[1], acc[2], acc[3]], dt=ti.f64) / Mb
-                    Pb = ti.Vector([acc[4], acc[5], acc[6]], dt=ti.f64)
-                    V = Pb / Mb
-                    Lc = ti.Vector([acc[7], acc[8], acc[9]], dt=ti.f64) - c0.cross(Pb)  # about c0
-                    S = ti.Matrix([[acc[10], acc[13], acc[14]], [acc[13], acc[11], acc[15]],
-                                   [acc[14], acc[15], acc[12]]], dt=ti.f64) - Mb * c0.outer_product(c0)
-                    Ic = (S[0, 0] + S[1, 1] + S[2, 2]) * ti.Matrix.identity(ti.f64, 3) - S
-                    w = Ic.inverse() @ Lc
-                for q in ti.static(range(3)):
-                    gbody[b, q] = c0[q]
-                    gbody[b, 3 + q] = V[q]
-                    gbody[b, 6 + q] = w[q]
-            for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes)
-                i, j, k0, k1 = _box_run(box, 0, qc)
-                for k in range(k0, k1):
-                    o = grid_r[0, i, j, k]
-                    m = grid_m[0, i, j, k]
-                    if o != 0 and m > 0.0:
-                        vb = _body_field(ti.abs(o) - 1, ti.Vector([i, j, k]), dx, gbody)
-                        if o > 0:
-                            grid_v[0, i, j, k] = vb
-                        else:  # fringe: the soft material's own momentum (none: the body's field)
-                            rm = grid_rm[0, i, j, k]
-                            out = vb
-                            if m - rm > FRINGE_SOFT * m:
-                                out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
-                            grid_v[0, i, j, k] = out
-        # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
-        for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
-            i, j, k0, k1 = _box_run(box, 0, qc)
-            for k in range(k0, k1):
-                gv = grid_v[0, i, j, k]
-                if grid_m[0, i, j, k] > 0.0:
-                    gv0 = gv  # before any boundary (front-band friction reads its own push on it)
-                    pushed = ti.Vector.zero(ti.f32, 3)
-                    I = ti.Vector([i, j, k])
-                    xn = ti.cast(I, ti.f32) * dx
-                    engaged = grid_c[0, i, j, k] > 0.0
-                    for s in range(n_slots):
-                        active, phi, n, vc, kind, fric = col.slot(s, xn, I, True, t, dx, L, wall, dyn, lvl_phi, lvl_id,
-                                                                  lvl_rows)
-                        # obstacles act where material touches them, on the nodes behind them and
-                        # those in front whose support holds the surface; cuboids (holding regions)
-                        # on every node inside, their mirrors beyond the held particles' reach
-                        if active == 1:
-                            if s < n_obst:
-                                if engaged and phi < FRONT_BAND * dx:
-                                    gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, FRONT_BAND,
-                                                           0.0, grid_v, grid_m)
-                            elif phi < 0.0:
-                                gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, HELD_REACH,
-                                                       MIRROR_MASS * grid_m[0, i, j, k], grid_v, grid_m)
-                grid_b[i, j, k] = gv
-        # G2P, F update, return map, stress of the new F; boundaries on deformable particles
-        for p in x:
-            xp = x[p]
-            m = mat[p]
-            rigid = _is_rigid(m, mcombo)
-            held = 0
-            hv = ti.Vector.zero(ti.f32, 3)
-            if ti.static(n_cub > 0):
-                if rigid == 0:
-                    held, hv = _held(xp, t, dyn)
-            base, fx, w = _stencil(xp, inv_dx, G, err)
-            new_v = ti.Vector.zero(ti.f32, 3)
-            new_C = ti.Matrix.zero(ti.f32, 3, 3)
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                offset = ti.Vector([i, j, k])
-                dpos = (ti.cast(offset, ti.f32) - fx) * dx
-                node = base + offset
-                g_v = grid_b[node[0], node[1], node[2]]
-                if ti.static(rigid_cid >= 0):
-                    if rigid == 1:  # the field of the body owning the node (boundaries: rigid.py)
-                        o = grid_r[0, node[0], node[1], node[2]]
-                        if o != 0:
-                            g_v = _body_field(ti.abs(o) - 1, node, dx, gbody)
-                        else:
-                            g_v = grid_v[0, node[0], node[1], node[2]]
-                weight = w[i][0] * w[j][1] * w[k][2]
-                new_v += weight * g_v
-                new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
-            x_new = xp + dt * new_v
-            if ti.static(any_flip):
-                fr = mparams[m, q_flip]
-                if rigid == 0 and fr > 0.0:
-                    # AFLIP (Fei et al. 2021): the APIC velocity plus the particle's own deviation
-                    # from the pre-force grid field (materials.FLIP_RATIO); the particle still
-                    # moves with, and strains by, the grid field
-                    v_old = ti.Vector.zero(ti.f32, 3)
-                    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                        node = base + ti.Vector([i, j, k])
-                        mn = grid_m[0, node[0], node[1], node[2]]
-                        if mn > 0.0:
-                            v_old += (w[i][0] * w[j][1] * w[k][2] / mn) * grid_o[node[0], node[1], node[2]]
-                    new_v += fr * (v[p] - v_old)
-            if held == 1:
-                # inside a cuboid: the particle stays with the cuboid, but carries the field the
-                # ghost nodes extend into it (so stress and momentum stay continuous at the face)
-                x_new = xp + dt * hv
-            elif rigid == 0:  # obstacles: back onto the surface, no inward velocity
-                for s in range(n_obst):
-                    active, phi, n, vc, kind, fric = col.slot(s, x_new, ti.Vector([0, 0, 0]), False, t, dx, L,
-                                                              wall, dyn, lvl_phi, lvl_id, lvl_rows)
-                    if active == 1 and phi < 0.0:
-                        x_new -= phi * n
-                        if kind < 0.5:
-                            new_v = vc
-                        else:
-                            un = (new_v - vc).dot(n)
-                            if un < 0.0:
-                                new_v -= un * n
-            F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
-            if held == 1:
-                # a held particle strains with the field the ghost nodes extend into the box (its
-                # stress keeps the stress continuous across the face) but transfers the holder's
-                # motion, so its momentum does not feed back into the ghost nodes' mirror samples
-                new_v = hv
-                new_C = ti.Matrix.zero(ti.f32, 3, 3)
-            v[p] = new_v
-            C[p] = new_C
-            x[p] = x_new
-            if rigid == 0:  # a rigid particle's F and tau are set by rigid.py's scatter after this kernel
-                q = _qrow(mparams, m)
-                cid = 0
-                if ti.static(n_combo > 1):
-                    cid = mcombo[m]
-                ep_p = 0.0
-                if ti.static(any_fracture):
-                    ep_p = ep[p]
-                F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
-                F[p] = F_new
-                tau[p] = tau_new
-                if ti.static(any_fracture):
-                    ep[p] = ep_p
+                    g_v = grid_b[node[0], node[1], node[2]]
+                    if ti.static(rigid_cid >= 0):
+                        if rigid == 1:  # the field of the body owning the node (boundaries: rigid.py)
+                            o = grid_r[0, node[0], node[1], node[2]]
+                            if o != 0:
+                                g_v = _body_field(ti.abs(o) - 1, node, dx, gbody)
+                            else:
+                                g_v = grid_v[0, node[0], node[1], node[2]]
+                    weight = w[i][0] * w[j][1] * w[k][2]
+                    new_v += weight * g_v
+                    new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
+                x_new = xp + dt * new_v
+                if ti.static(any_flip):
+                    fr = mparams[m, q_flip]
+                    if rigid == 0 and fr > 0.0:
+                        # AFLIP (Fei et al. 2021): the APIC velocity plus the particle's own deviation
+                        # from the pre-force grid field (materials.FLIP_RATIO); the particle still
+                        # moves with, and strains by, the grid field
+                        v_old = ti.Vector.zero(ti.f32, 3)
+                        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                            node = base + ti.Vector([i, j, k])
+                            mn = grid_m[0, node[0], node[1], node[2]]
+                            if mn > 0.0:
+                                v_old += (w[i][0] * w[j][1] * w[k][2] / mn) * grid_o[node[0], node[1], node[2]]
+                        new_v += fr * (v[p] - v_old)
+                if held == 1:
+                    # inside a cuboid: the particle stays with the cuboid, but carries the field the
+                    # ghost nodes extend into it (so stress and momentum stay continuous at the face)
+                    x_new = xp + dt * hv
+                elif rigid == 0:  # obstacles: back onto the surface, no inward velocity
+                    for s in range(n_obst):
+                        active, phi, n, vc, kind, fric = col.slot(s, x_new, ti.Vector([0, 0, 0]), False, t, dx, L,
+                                                                  wall, dyn, lvl_phi, lvl_id, lvl_rows)
+                        if active == 1 and phi < 0.0:
+                            x_new -= phi * n
+                            if kind < 0.5:
+                                new_v = vc
+                            else:
+                                un = (new_v - vc).dot(n)
+                                if un < 0.0:
+                                    new_v -= un * n
+                F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
+                if held == 1:
+                    # a held particle strains with the field the ghost nodes extend into the box (its
+                    # stress keeps the stress continuous across the face) but transfers the holder's
+                    # motion, so its momentum does not feed back into the ghost nodes' mirror samples
+                    new_v = hv
+                    new_C = ti.Matrix.zero(ti.f32, 3, 3)
+                v[p] = new_v
+                C[p] = new_C
+                x[p] = x_new
+                if rigid == 0:  # a rigid particle's F and tau are set by rigid.py's scatter after this kernel
+                    q = _qrow(mparams, m)
+                    cid = 0
+                    if ti.static(n_combo > 1):
+                        cid = mcombo[m]
+                    ep_p = 0.0
+                    if ti.static(any_fracture):
+                        ep_p = ep[p]
+                    F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
+                    F[p] = F_new
+                    tau[p] = tau_new
+                    if ti.static(any_fracture):
+                        ep[p] = ep_p
 
     return SimpleNamespace(substep=substep, spec=spec, colliders=col)
 

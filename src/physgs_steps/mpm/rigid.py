@@ -24,7 +24,29 @@ Where two bodies meet, a node belongs to the one with the higher index and the o
 particles read its field there: they exchange momentum through those nodes, so a collision
 is perfectly inelastic, as between any two MPM materials.
 
-Per substep, after the MPM kernel:
+The covered nodes take the body's field *after its contact solve*.  A substep with free
+bodies runs the MPM kernel in two launches (kernels.py ``part`` 1 and 2): the first ends with
+the bodies' grid fields (gbody: centre c0, V, omega, mass and inertia about c0 of the covered
+nodes and the fringe's rigid mass); then each field goes through the body's contact solve
+(step 2 below, ``advance`` with ``pre``, which moves nothing) with the field's mass and inertia
+(the soft material on the covered nodes moves with the field, so the contacts hold it too),
+and the second launch gives the covered nodes the solved field and runs the boundaries and
+G2P.  The contacts depend only on the pose at the start of the substep, so
+they are found before the first launch (``reduce`` with ``what`` 1).  After G2P the solve
+runs again on the momentum the particles carry (steps 1-2; the field already meets the
+contacts, so it has next to nothing left to do, except where another body's nodes changed
+its particles' momentum) and the body moves.  Before, the covered nodes took the field before
+the contact solve: for a body resting on the ground that is -g dt plus the push of what rests
+on it, while the body itself was stopped by its contacts, so soft material resting on a
+resting free body moved into it at that speed, every substep: a jelly on a free slab crept
+into it at 0.04 m/s (grid 16, dt 3.7 ms) and through its top face, the duck of duck_stone
+into its stone at 0.007-0.009 m/s, and neither ever came to rest (the rest hold never took
+them; ``test_soft_block_rests_on_a_free_rigid_slab_and_the_rest_hold_takes_it``).  Now the
+soft material covered by the body shares its contact response: the ground holds what rests on
+the body through it, as a fixed slab or the ground itself would.  The torch pseudo-step
+(bgdo/torch_step.py) has no body contacts, so it has nothing to mirror here.
+
+Per substep, after the MPM kernel's second launch:
 
 1. **reduce** each body b over its particles p (r_p = R_b r0_p, the offset from the centre of
    mass in the pose at the start of the substep; v_p, C_p from G2P, which for rigid particles
@@ -236,6 +258,58 @@ def _shift(ct: ti.template(), work: ti.template(), win: ti.template(), b, cap, u
     return shift
 
 
+@ti.func
+def _body_mass(body_M: ti.template(), body_R: ti.template(), body_I0inv: ti.template(), gbody: ti.template(),
+               body_c: ti.template(), b, pre: ti.template()):
+    """What body b's contact solve moves: (M, I^-1 in the current pose, roff: the offset of the
+    body's centre of mass from the solve's reference point, added to the contacts' arms).  The
+    body itself (reference: its centre of mass), or with ``pre`` its grid field: the covered
+    nodes' mass and inertia about their centre c0 (gbody, kernels.py), the body's own soft
+    load included, which moves with the solved field."""
+    M = body_M[b]
+    R = body_R[b]
+    Iinv = R @ body_I0inv[b] @ R.transpose()
+    roff = ti.Vector.zero(ti.f64, 3)
+    if ti.static(pre):
+        if gbody[b, 10] > 0.0:
+            M = gbody[b, 10]
+            Ig = ti.Matrix([[gbody[b, 11], gbody[b, 14], gbody[b, 15]], [gbody[b, 14], gbody[b, 12], gbody[b, 16]],
+                            [gbody[b, 15], gbody[b, 16], gbody[b, 13]]], dt=ti.f64)
+            Iinv = Ig.inverse()
+            roff = body_c[b] - ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
+    return M, Iinv, roff
+
+
+@ti.func
+def _start_vw(part: ti.template(), gbody: ti.template(), b, T, M, Iinv, pre: ti.template()):
+    """Body b's velocity (V at the reference point of :func:`_body_mass`, omega) before its
+    contact solve: from the chunks' momentum sums (part, after G2P), or with ``pre`` its grid
+    field (gbody: V at c0, omega)."""
+    V = ti.Vector.zero(ti.f64, 3)
+    w = ti.Vector.zero(ti.f64, 3)
+    if ti.static(pre):
+        w = ti.Vector([gbody[b, 6], gbody[b, 7], gbody[b, 8]], dt=ti.f64)
+        V = ti.Vector([gbody[b, 3], gbody[b, 4], gbody[b, 5]], dt=ti.f64)
+    else:
+        P = ti.Vector.zero(ti.f64, 3)
+        Lm = ti.Vector.zero(ti.f64, 3)
+        for c in range(T):
+            for q in ti.static(range(3)):
+                P[q] += part[c, b, q]
+                Lm[q] += part[c, b, 3 + q]
+        V = P / M
+        w = Iinv @ Lm
+    return V, w
+
+
+@ti.func
+def _grid_vw(gbody: ti.template(), b, V, w):
+    """Body b's solved field (V at c0, omega) back into gbody."""
+    for q in ti.static(range(3)):
+        gbody[b, 3 + q] = V[q]
+        gbody[b, 6 + q] = w[q]
+
+
 def body_setup(x: np.ndarray, mass: np.ndarray, dx: float) -> tuple:
     """Body-frame data of one rigid body from its particles (metres, kg): (centre [3],
     r0 [P, 3] offsets, I0 [3, 3] inertia including APIC's dx^2/2 per unit mass, M)."""
@@ -286,11 +360,14 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
     @ti.kernel
     def reduce(v: K.V1, C: K.M1, p_mass: K.S1, rb_p: K.I1, rb_b: K.I1, rb_r0: K.V1, body_c: V1d,
                body_R: M1d, part: S3d, ct: K.S3, ct_count: K.I1, dyn: K.S2, lvl_phi: K.S3, lvl_id: K.I3,
-               lvl_rows: K.S2, t: ti.f32, dx: ti.f32, wall: ti.f32, G: ti.i32):
-        """Per chunk: momentum and angular momentum sums of each body and its number of contact
-        rows (part [T, B, 7]), and the contact candidates (ct [T, cap, CT_WIDTH], ct_count [T]),
-        found at the particles' positions in the pose at the start of the substep, c + R r0 (not
-        at x, which G2P has already moved by dt v: module docs "contact")."""
+               lvl_rows: K.S2, t: ti.f32, dx: ti.f32, wall: ti.f32, G: ti.i32, what: ti.template()):
+        """Per chunk: momentum and angular momentum sums of each body (part [T, B, 0:6]) and
+        the contact candidates (ct [T, cap, CT_WIDTH], ct_count [T]) with their number per body
+        (part [T, B, 6]), found at the particles' positions in the pose at the start of the
+        substep, c + R r0 (not at x, which G2P has already moved by dt v: module docs
+        "contact").  ``what`` (compile-time): 0 both, 1 the contacts only (they depend on the
+        pose alone: found before the substep's MPM kernel, for the contact solve on the grid),
+        2 the momentum sums only (after G2P)."""
         T = part.shape[0]
         B = part.shape[1]
         Pr = rb_p.shape[0]
@@ -299,21 +376,27 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
         inv_dx = 1.0 / dx
         for c in range(T):
             for b in range(B):
-                for q in ti.static(range(7)):
-                    part[c, b, q] = 0.0
+                if ti.static(what != 1):
+                    for q in ti.static(range(6)):
+                        part[c, b, q] = 0.0
+                if ti.static(what != 2):
+                    part[c, b, 6] = 0.0
             nc = 0
             for j in range(c * Pr // T, (c + 1) * Pr // T):
                 p = rb_p[j]
                 b = rb_b[j]
-                m = ti.cast(p_mass[p], ti.f64)
                 r = body_R[b] @ ti.cast(rb_r0[j], ti.f64)
-                vp = ti.cast(v[p], ti.f64)
-                Cp = ti.cast(C[p], ti.f64)
-                ang = m * r.cross(vp) + (m * ti.cast(dx, ti.f64) ** 2 / 4.0) * ti.Vector(
-                    [Cp[2, 1] - Cp[1, 2], Cp[0, 2] - Cp[2, 0], Cp[1, 0] - Cp[0, 1]], dt=ti.f64)
-                for q in ti.static(range(3)):
-                    part[c, b, q] += m * vp[q]
-                    part[c, b, 3 + q] += ang[q]
+                if ti.static(what != 1):
+                    m = ti.cast(p_mass[p], ti.f64)
+                    vp = ti.cast(v[p], ti.f64)
+                    Cp = ti.cast(C[p], ti.f64)
+                    ang = m * r.cross(vp) + (m * ti.cast(dx, ti.f64) ** 2 / 4.0) * ti.Vector(
+                        [Cp[2, 1] - Cp[1, 2], Cp[0, 2] - Cp[2, 0], Cp[1, 0] - Cp[0, 1]], dt=ti.f64)
+                    for q in ti.static(range(3)):
+                        part[c, b, q] += m * vp[q]
+                        part[c, b, 3 + q] += ang[q]
+                if ti.static(what == 2):
+                    continue
                 xp = ti.cast(body_c[b] + r, ti.f32)  # where the contact solve starts from (advance: d_pos)
                 ci = ti.min(ti.max(ti.cast(ti.floor(xp * (inv_dx / CT_BIN)), ti.i32), 0), G - 1)
                 cell = ti.cast((ci[0] * G + ci[1]) * G + ci[2], ti.f32)  # exact in f32 up to G = 256
@@ -359,27 +442,23 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                             if at == nc:
                                 nc += 1
                                 part[c, b, 6] += 1.0  # the body's contact rows (mass splitting)
-            ct_count[c] = nc
+            if ti.static(what != 2):
+                ct_count[c] = nc
 
     @ti.kernel
     def advance(part: S3d, ct: K.S3, ct_count: K.I1, acc: K.S3, body_c: V1d, body_R: M1d, body_V: V1d,
-                body_w: V1d, body_M: S1d, body_I0inv: M1d, dt: ti.f64):
-        """Sum the chunks, solve the contacts, move each body (serial: a few bodies)."""
+                body_w: V1d, body_M: S1d, body_I0inv: M1d, gbody: S2d, dt: ti.f64, pre: ti.template()):
+        """Sum the chunks, solve the contacts, move each body (serial: a few bodies).  With ``pre``
+        (compile-time) the contact solve on the grid (module docs "Coupling"): the velocities are
+        the bodies' grid fields (gbody: centre, V, omega), the solved ones go back there, and
+        nothing moves."""
         T = part.shape[0]
         B = part.shape[1]
         ti.loop_config(serialize=True)
         for b in range(B):
-            P = ti.Vector.zero(ti.f64, 3)
-            Lm = ti.Vector.zero(ti.f64, 3)
-            for c in range(T):
-                for q in ti.static(range(3)):
-                    P[q] += part[c, b, q]
-                    Lm[q] += part[c, b, 3 + q]
-            M = body_M[b]
             R = body_R[b]
-            Iinv = R @ body_I0inv[b] @ R.transpose()
-            V = P / M
-            w = Iinv @ Lm
+            M, Iinv, roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
+            V, w = _start_vw(part, gbody, b, T, M, Iinv, pre)
             # contacts: projected Gauss-Seidel with accumulated impulses
             for c in range(T):
                 for j in range(ct_count[c]):
@@ -390,6 +469,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                     for j in range(ct_count[c]):
                         if ti.cast(ct[c, j, 0], ti.i32) == b:
                             r, n, phi, vc, kind, fric, region = _contact(ct, c, j)
+                            r += roff
                             u = V + w.cross(r) - vc
                             if region > 0.5 or (kind < 0.5 and phi <= 0.0):
                                 # stick: u = 0 at the contact (K^-1 with K = Id / M - [r]x I^-1 [r]x)
@@ -429,58 +509,55 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                                             acc[c, j, 1 + q] = ti.cast(at_new[q], ti.f32)
                                         V += d / M
                                         w += Iinv @ r.cross(d)
-            Lm = (Iinv.inverse()) @ w
-            # advance the pose
-            cb = body_c[b] + dt * V
-            R_new = _orthonormal(_rotation(w, dt) @ R)
-            # remove penetration left by the linearised contacts (translation along the normal)
-            shift = ti.Vector.zero(ti.f64, 3)
-            for it in range(POSITION_ITERS):
-                worst = ti.cast(0.0, ti.f64)
-                wn = ti.Vector.zero(ti.f64, 3)
-                for c in range(T):
-                    for j in range(ct_count[c]):
-                        if ti.cast(ct[c, j, 0], ti.i32) == b and ct[c, j, 13] < 0.5:
-                            r, n, phi, vc, _kind, _fric, _region = _contact(ct, c, j)
-                            r_new = R_new @ (R.transpose() @ r)
-                            d_pos = (cb + r_new + shift) - (body_c[b] + r) - dt * vc
-                            depth = phi + d_pos.dot(n)
-                            if depth < worst:
-                                worst = depth
-                                wn = n
-                if worst < 0.0:
-                    shift -= worst * wn
-            cb += shift
-            body_c[b] = cb
-            body_R[b] = R_new
-            body_V[b] = V
-            body_w[b] = R_new @ body_I0inv[b] @ R_new.transpose() @ Lm
+            if ti.static(pre):
+                _grid_vw(gbody, b, V, w)
+            else:
+                Lm = (Iinv.inverse()) @ w
+                # advance the pose
+                cb = body_c[b] + dt * V
+                R_new = _orthonormal(_rotation(w, dt) @ R)
+                # remove penetration left by the linearised contacts (translation along the normal)
+                shift = ti.Vector.zero(ti.f64, 3)
+                for it in range(POSITION_ITERS):
+                    worst = ti.cast(0.0, ti.f64)
+                    wn = ti.Vector.zero(ti.f64, 3)
+                    for c in range(T):
+                        for j in range(ct_count[c]):
+                            if ti.cast(ct[c, j, 0], ti.i32) == b and ct[c, j, 13] < 0.5:
+                                r, n, phi, vc, _kind, _fric, _region = _contact(ct, c, j)
+                                r_new = R_new @ (R.transpose() @ r)
+                                d_pos = (cb + r_new + shift) - (body_c[b] + r) - dt * vc
+                                depth = phi + d_pos.dot(n)
+                                if depth < worst:
+                                    worst = depth
+                                    wn = n
+                    if worst < 0.0:
+                        shift -= worst * wn
+                cb += shift
+                body_c[b] = cb
+                body_R[b] = R_new
+                body_V[b] = V
+                body_w[b] = R_new @ body_I0inv[b] @ R_new.transpose() @ Lm
 
     @ti.kernel
     def advance_jacobi(part: S3d, ct: K.S3, ct_count: K.I1, acc: K.S3, body_c: V1d, body_R: M1d, body_V: V1d,
                        body_w: V1d, body_M: S1d, body_I0inv: M1d, work: S2d, jac: S3d, depth: S2d, win: I2d,
-                       dt: ti.f64, n_rows: ti.template(), B: ti.template()):
+                       gbody: S2d, dt: ti.f64, n_rows: ti.template(), B: ti.template(), pre: ti.template()):
         """:func:`advance` in parallel over the contacts (module docs "Parallel contact solve"):
         Jacobi iterations with mass splitting, the position passes as a parallel minimum.
         n_rows = T * cap (the contact table's rows) and B (the bodies) are compile-time
         constants (one compile per solver layout): with a bound read at run time Taichi (without
         advanced_optimization, backend.py) launches a serial task to compute it before each of
-        the loops, 44 tasks instead of 24."""
+        the loops, 44 tasks instead of 24.  ``pre``: the contact solve on the grid, as in
+        :func:`advance` (velocities from and back to gbody, no position passes)."""
         T = part.shape[0]
         cap = ct.shape[1]
         for b in range(B):  # the chunks' sums (in chunk order), the scratch rows zeroed
-            P = ti.Vector.zero(ti.f64, 3)
-            Lm = ti.Vector.zero(ti.f64, 3)
             ncb = ti.cast(0.0, ti.f64)
             for c in range(T):
-                for q in ti.static(range(3)):
-                    P[q] += part[c, b, q]
-                    Lm[q] += part[c, b, 3 + q]
                 ncb += part[c, b, 6]
-            R = body_R[b]
-            Iinv = R @ body_I0inv[b] @ R.transpose()
-            V = P / body_M[b]
-            w = Iinv @ Lm
+            M, Iinv, _roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
+            V, w = _start_vw(part, gbody, b, T, M, Iinv, pre)
             for q in ti.static(range(3)):
                 work[b, _W_V + q] = V[q]
                 work[b, _W_W + q] = w[q]
@@ -499,15 +576,14 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                 j = i - c * cap
                 if j < ct_count[c]:
                     b = ti.cast(ct[c, j, 0], ti.i32)
-                    M = body_M[b]
-                    R = body_R[b]
-                    Iinv = R @ body_I0inv[b] @ R.transpose()
+                    M, Iinv, roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
                     V, w = _jacobi_vw(work, jac, b, M, Iinv, it)
                     # mass splitting: this contact's share of the body, mass M / n, inertia I / n
                     ns = work[b, _W_N]
                     Ms = M / ns
                     Is = Iinv * ns
                     r, n, phi, vc, kind, fric, region = _contact(ct, c, j)
+                    r += roff
                     u = V + w.cross(r) - vc
                     imp = ti.Vector.zero(ti.f64, 3)  # this iteration's impulse at the contact
                     if region > 0.5 or (kind < 0.5 and phi <= 0.0):
@@ -559,54 +635,60 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
                     for q in ti.static(range(3)):
                         ti.atomic_add(jac[b, it, q], imp[q])
                         ti.atomic_add(jac[b, it, 3 + q], ang[q])
-        for b in range(B):  # the velocities after the solve, the new pose before the position passes
-            M = body_M[b]
-            R = body_R[b]
-            Iinv = R @ body_I0inv[b] @ R.transpose()
-            V, w = _jacobi_vw(work, jac, b, M, Iinv, JACOBI_ITERS)
-            Lm = (Iinv.inverse()) @ w
-            cb = body_c[b] + dt * V
-            R_new = _orthonormal(_rotation(w, dt) @ R)
-            for q in ti.static(range(3)):
-                work[b, _W_V + q] = V[q]
-                work[b, _W_L + q] = Lm[q]
-                work[b, _W_C + q] = cb[q]
-            for q in ti.static(range(9)):
-                work[b, _W_R + q] = R_new[q // 3, q % 3]
-        for it in ti.static(range(POSITION_ITERS)):
-            # the deepest contact per body: its depth by an atomic minimum, then the first row
-            # (in the serial solve's order) of that depth by an atomic minimum of the row index
-            for i in range(n_rows):
-                c = i // cap
-                j = i - c * cap
-                if j < ct_count[c] and ct[c, j, 13] < 0.5:
-                    b = ti.cast(ct[c, j, 0], ti.i32)
-                    shift = _shift(ct, work, win, b, cap, it)
-                    r, n, phi, vc, _kind, _fric, _region = _contact(ct, c, j)
-                    R_new = _work_R(work, b)
-                    cb = ti.Vector([work[b, _W_C], work[b, _W_C + 1], work[b, _W_C + 2]], dt=ti.f64)
-                    r_new = R_new @ (body_R[b].transpose() @ r)
-                    d_pos = (cb + r_new + shift) - (body_c[b] + r) - dt * vc
-                    d = phi + d_pos.dot(n)
-                    depth[c, j] = d
-                    if d < 0.0:
-                        ti.atomic_min(work[b, _W_WORST + it], d)
-            for i in range(n_rows):
-                c = i // cap
-                j = i - c * cap
-                if j < ct_count[c] and ct[c, j, 13] < 0.5:
-                    b = ti.cast(ct[c, j, 0], ti.i32)
-                    d = depth[c, j]
-                    if d < 0.0 and d == work[b, _W_WORST + it]:
-                        ti.atomic_min(win[b, it], i)
-        for b in range(B):
-            shift = _shift(ct, work, win, b, ct.shape[1], POSITION_ITERS)
-            R_new = _work_R(work, b)
-            body_c[b] = ti.Vector([work[b, _W_C], work[b, _W_C + 1], work[b, _W_C + 2]], dt=ti.f64) + shift
-            body_R[b] = R_new
-            body_V[b] = ti.Vector([work[b, _W_V], work[b, _W_V + 1], work[b, _W_V + 2]], dt=ti.f64)
-            Lm = ti.Vector([work[b, _W_L], work[b, _W_L + 1], work[b, _W_L + 2]], dt=ti.f64)
-            body_w[b] = R_new @ body_I0inv[b] @ R_new.transpose() @ Lm
+        if ti.static(pre):
+            for b in range(B):
+                M, Iinv, _roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
+                V, w = _jacobi_vw(work, jac, b, M, Iinv, JACOBI_ITERS)
+                _grid_vw(gbody, b, V, w)
+        else:
+            for b in range(B):  # the velocities after the solve, the new pose before the position passes
+                M = body_M[b]
+                R = body_R[b]
+                Iinv = R @ body_I0inv[b] @ R.transpose()
+                V, w = _jacobi_vw(work, jac, b, M, Iinv, JACOBI_ITERS)
+                Lm = (Iinv.inverse()) @ w
+                cb = body_c[b] + dt * V
+                R_new = _orthonormal(_rotation(w, dt) @ R)
+                for q in ti.static(range(3)):
+                    work[b, _W_V + q] = V[q]
+                    work[b, _W_L + q] = Lm[q]
+                    work[b, _W_C + q] = cb[q]
+                for q in ti.static(range(9)):
+                    work[b, _W_R + q] = R_new[q // 3, q % 3]
+            for it in ti.static(range(POSITION_ITERS)):
+                # the deepest contact per body: its depth by an atomic minimum, then the first row
+                # (in the serial solve's order) of that depth by an atomic minimum of the row index
+                for i in range(n_rows):
+                    c = i // cap
+                    j = i - c * cap
+                    if j < ct_count[c] and ct[c, j, 13] < 0.5:
+                        b = ti.cast(ct[c, j, 0], ti.i32)
+                        shift = _shift(ct, work, win, b, cap, it)
+                        r, n, phi, vc, _kind, _fric, _region = _contact(ct, c, j)
+                        R_new = _work_R(work, b)
+                        cb = ti.Vector([work[b, _W_C], work[b, _W_C + 1], work[b, _W_C + 2]], dt=ti.f64)
+                        r_new = R_new @ (body_R[b].transpose() @ r)
+                        d_pos = (cb + r_new + shift) - (body_c[b] + r) - dt * vc
+                        d = phi + d_pos.dot(n)
+                        depth[c, j] = d
+                        if d < 0.0:
+                            ti.atomic_min(work[b, _W_WORST + it], d)
+                for i in range(n_rows):
+                    c = i // cap
+                    j = i - c * cap
+                    if j < ct_count[c] and ct[c, j, 13] < 0.5:
+                        b = ti.cast(ct[c, j, 0], ti.i32)
+                        d = depth[c, j]
+                        if d < 0.0 and d == work[b, _W_WORST + it]:
+                            ti.atomic_min(win[b, it], i)
+            for b in range(B):
+                shift = _shift(ct, work, win, b, ct.shape[1], POSITION_ITERS)
+                R_new = _work_R(work, b)
+                body_c[b] = ti.Vector([work[b, _W_C], work[b, _W_C + 1], work[b, _W_C + 2]], dt=ti.f64) + shift
+                body_R[b] = R_new
+                body_V[b] = ti.Vector([work[b, _W_V], work[b, _W_V + 1], work[b, _W_V + 2]], dt=ti.f64)
+                Lm = ti.Vector([work[b, _W_L], work[b, _W_L + 1], work[b, _W_L + 2]], dt=ti.f64)
+                body_w[b] = R_new @ body_I0inv[b] @ R_new.transpose() @ Lm
 
     @ti.kernel
     def scatter(x: K.V1, v: K.V1, C: K.M1, F: K.M1, tau: K.M1, rb_p: K.I1, rb_b: K.I1, rb_r0: K.V1,
@@ -680,24 +762,32 @@ class RigidBodies:
         self.acc = ti.ndarray(ti.f32, (T, cap, 4))
         self.ct_count = ti.ndarray(ti.i32, T)
         self._launch = None  # the contact solve's backend.Launcher (advance)
+        self._launch_pre = None  # the same for the contact solve on the grid (advance with pre)
         if solve == "jacobi":  # advance_jacobi's scratch
             self.work = ti.ndarray(ti.f64, (self.n_bodies, _W_WIDTH))
             self.jac = ti.ndarray(ti.f64, (self.n_bodies, JACOBI_ITERS, 6))
             self.depth = ti.ndarray(ti.f64, (T, cap))
             self.win = ti.ndarray(ti.i32, (self.n_bodies, POSITION_ITERS))
 
-    def advance(self, kr: SimpleNamespace, dt: float) -> None:
-        """Solve the contacts and move the bodies (``kr``: :func:`build`'s kernels)."""
+    def advance(self, kr: SimpleNamespace, dt: float, gbody, pre: bool = False) -> None:
+        """Solve the contacts and move the bodies (``kr``: :func:`build`'s kernels; ``gbody``: the
+        solver's per-body grid fields).  ``pre``: the contact solve on the grid between the
+        substep's two MPM launches (module docs "Coupling"), which solves the bodies' grid
+        fields in gbody and moves nothing."""
         args = (self.part, self.ct, self.ct_count, self.acc, self.body_c, self.body_R, self.body_V, self.body_w,
                 self.body_M, self.body_I0inv)
         kernel = kr.advance_jacobi if self.solve == "jacobi" else kr.advance
-        if self._launch is None or self._launch.kernel is not kernel:
-            self._launch = Launcher(kernel)  # backend.Launcher: no per-call argument processing
+        name = "_launch_pre" if pre else "_launch"
+        launch = getattr(self, name)
+        if launch is None or launch.kernel is not kernel:
+            launch = Launcher(kernel)  # backend.Launcher: no per-call argument processing
+            setattr(self, name, launch)
         if self.solve == "jacobi":
             T, cap = self.ct.shape[0], self.ct.shape[1]
-            self._launch(*args, self.work, self.jac, self.depth, self.win, float(dt), int(T * cap), int(self.n_bodies))
+            launch(*args, self.work, self.jac, self.depth, self.win, gbody, float(dt), int(T * cap),
+                   int(self.n_bodies), bool(pre))
         else:
-            self._launch(*args, float(dt))
+            launch(*args, gbody, float(dt), bool(pre))
 
     def state(self) -> dict:
         """Body state as numpy: centre [B, 3] (m), R [B, 3, 3], V [B, 3] (m/s), omega [B, 3] (rad/s)."""

@@ -202,6 +202,7 @@ class MPMSolver:
                       run=run)
         self._k = K.build(spec)
         self._launch_substep = Launcher(self._k.substep)  # backend.Launcher: no per-call argument processing
+        self._launch_substep_b = Launcher(self._k.substep)  # its second part with free rigid bodies (substep)
         self._setup_rigid(xs[perm] * self.L, p_mass.astype(np.float64), ms[perm])
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
         self.set_state(x, velocity / self.L, np.zeros((P, 3, 3)), eye)
@@ -261,7 +262,7 @@ class MPMSolver:
         self._gpart = ti.ndarray(ti.f64, (G * G + G if grids else 1, nb, K.N_GSUM))  # per column, slab, body: grid sums
         self.grid_rm = ti.ndarray(ti.f32, (T, G, G, G) if grids else (1, 1, 1, 1))  # rigid mass per node
         self.grid_rv = ti.ndarray(K.vec3, (T, G, G, G) if grids else (1, 1, 1, 1))  # rigid momentum, velocity
-        gbody = np.zeros((nb, 10))  # per body: centre, V, omega of the covered nodes; covering mass
+        gbody = np.zeros((nb, 17))  # per body: centre, V, omega of the covered nodes; covering mass; their mass, inertia
         gbody[: len(free), 9] = [colliders.COVER * self.materials[k].density * self.dx ** 3 for k in free]
         self._gbody = _ndarray_from(gbody, ti.f64)
         if free:
@@ -272,6 +273,7 @@ class MPMSolver:
             b = self.bound
             self._kr = rigid_mod.build(b.counts, b.boundary, bool(self._static_geoms), self.private_grid)
             self._launch_reduce, self._launch_scatter = Launcher(self._kr.reduce), Launcher(self._kr.scatter)
+            self._launch_contacts = Launcher(self._kr.reduce)  # its contacts-only instance (substep)
 
     def init_affine(self, iterations: int = AFFINE_ITERATIONS) -> None:
         """Set every particle's C to the velocity gradient the APIC transfer reproduces for the
@@ -483,19 +485,29 @@ class MPMSolver:
         if self._sorter is not None and self.resort_every > 0 and self._since_sort >= self.resort_every:
             self.resort()
         self._since_sort += 1
-        self._launch_substep(self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
-                        self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b,
-                        self.grid_o, self.grid_r, self.grid_rm, self.grid_rv, self._mbody,
-                        self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
-                        self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
-                        float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]),
-                        float(b.gravity[2]), float(damp), self._cell_start)
-        if self.rigid is not None:
+        args = (self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
+                self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_o, self.grid_r,
+                self.grid_rm, self.grid_rv, self._mbody, self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
+                self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
+                float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]),
+                float(damp), self._cell_start)
+        if self.rigid is None:
+            self._launch_substep(*args, 0)
+        else:
+            # free rigid bodies (rigid.py "Coupling"): their contacts (from the pose at the start of
+            # the substep), the MPM up to their grid fields, the contact solve on those fields, the
+            # rest of the MPM (covered nodes move with the solved fields), then the bodies' own
+            # momentum from their particles, the contact solve again and the move
             rb, kr = self.rigid, self._kr
-            self._launch_reduce(self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R,
-                                rb.part, rb.ct, rb.ct_count, self._dyn, self._lvl_phi, self._lvl_id, self._lvl_rows,
-                                float(self.time), float(self.dx), float(b.wall_margin), self.n_grid)
-            rb.advance(kr, dt)
+            rargs = (self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R, rb.part, rb.ct,
+                     rb.ct_count, self._dyn, self._lvl_phi, self._lvl_id, self._lvl_rows, float(self.time),
+                     float(self.dx), float(b.wall_margin), self.n_grid)
+            self._launch_contacts(*rargs, 1)
+            self._launch_substep(*args, 1)
+            rb.advance(kr, dt, self._gbody, pre=True)
+            self._launch_substep_b(*args, 2)
+            self._launch_reduce(*rargs, 2)
+            rb.advance(kr, dt, self._gbody)
             self._launch_scatter(self.x, self.v, self.C, self.F, self.tau, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c,
                                  rb.body_R, rb.body_V, rb.body_w, rb.body_K)
         self.time += dt
