@@ -93,3 +93,19 @@ def test_time_step_plans():
         TimeStepper(mode="fixed", substep_dt=1e-6, max_substeps=100)
     with pytest.raises(ConfigError, match="sim.dt_mode"):
         TimeStepper(mode="implicit")
+
+
+@pytest.mark.parametrize("kind,value", [("speed", math.inf), ("j_high", math.inf), ("nonfinite", 12.0),
+                                        ("outside", math.inf)])
+def test_failure_message_survives_an_overflowed_value(kind, value):
+    """A speed or J that overflowed float32 is inf: the message still names it (the stiff sweep's
+    stvk_hencky/von_mises cell E 3e7, nu 0.3, density 10 kg/m^3 ended in OverflowError from
+    int(inf) while the message was built, and the whole sweep job failed with it)."""
+    from physgs_steps.mpm.stability import Failure, explain
+
+    m = Material("stvk_hencky", "von_mises", E=3e7, nu=0.3, density=10.0, yield_stress=3e4, name="cube")
+    stepper = TimeStepper()
+    plan = stepper.plan(1 / 16, m.cfl_speed, 0.0)
+    msg = explain(Failure(kind, 0, value, 3, 0.1, [0]), [m], stepper, plan, 1 / 16, 16, Thresholds(), "test")
+    assert "frame 3" in msg and "cube" in msg
+    assert ("inf" in msg) == (not math.isfinite(value))

@@ -8,6 +8,8 @@ parameters, the time-step situation and the change that would help.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,13 +73,16 @@ def explain(f: Failure, materials: list[Material], stepper: TimeStepper, plan: S
             n_grid: int, th: Thresholds, stage: str) -> str:
     """A user-facing message: what failed, where, with which material, and what to change."""
     m = materials[f.instance]
+    # templates filled for the failure's own kind only: a speed or J that overflowed to inf is a
+    # valid value of those kinds, but not a count (int(inf) raised here and lost the message)
     what = {
-        "nonfinite": f"{int(f.value)} particles have NaN/Inf position, velocity or deformation",
-        "outside": f"{int(f.value)} particles left the simulation domain",
-        "speed": f"a particle moves at {f.value:.3g} m/s (limit sim.stability.max_speed = {th.max_speed:g})",
-        "j_low": f"volume ratio J = det F fell to {f.value:.3g} (limit sim.stability.j_min = {th.j_min:g})",
-        "j_high": f"volume ratio J = det F grew to {f.value:.3g} (limit sim.stability.j_max = {th.j_max:g})",
-    }[f.kind]
+        "nonfinite": "{n} particles have NaN/Inf position, velocity or deformation",
+        "outside": "{n} particles left the simulation domain",
+        "speed": "a particle moves at {v:.3g} m/s (limit sim.stability.max_speed = {max_speed:g})",
+        "j_low": "volume ratio J = det F fell to {v:.3g} (limit sim.stability.j_min = {j_min:g})",
+        "j_high": "volume ratio J = det F grew to {v:.3g} (limit sim.stability.j_max = {j_max:g})",
+    }[f.kind].format(n=int(f.value) if math.isfinite(f.value) else f.value, v=f.value, max_speed=th.max_speed,
+                     j_min=th.j_min, j_max=th.j_max)
     where = [materials[i].name for i in (f.instances or [f.instance])]
     head = f"{stage}: the simulation became unstable at frame {f.frame} (t = {f.time:.3f} s): {what}"
     if plan.over_cfl:  # the cause is the material(s) stepped above the CFL limit, whatever broke first
