@@ -7,6 +7,7 @@
     physgs plan benchmark/cpu/runs/bear/variants/baseline   # a benchmark run (README "Regenerating the benchmark")
     physgs check                          # every problem of the config and of every scene file
     physgs bench pipeline bear            # time the whole pipeline per structure (pipeline_bench.py)
+    physgs snakemake --cores 1 results/bear/video.mp4   # snakemake through the warm server (smk_server.py)
 
 Snakemake is the way to run the pipeline (caching, clusters); this is for debugging a stage
 and for machines where only the library is installed (e.g. a GPU node for benchmarks).
@@ -18,16 +19,14 @@ import json
 import sys
 from pathlib import Path
 
-from . import config as C
-from . import plan as P
-from .errors import PhysGSError
-from .runtime import project_root, run_stage, timed_stage_function, write_json
+# config, plan and runtime are imported where used: `physgs snakemake` must start in milliseconds
 
 STAGES = ("prepare", "cluster", "fill", "vlm_params", "pinned_params", "forward_sim", "bgdo_update", "final_sim", "render", "metrics")
 
 
 def _stage_fn(name: str):
     """The library function of a stage (imported now; see worker.ENTRIES)."""
+    from .errors import PhysGSError
     from .worker import stage_function
 
     if name not in STAGES:
@@ -35,8 +34,12 @@ def _stage_fn(name: str):
     return stage_function(name)
 
 
-def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, dict, dict]:
+def stage_io(plan: "P.Plan", name: str, step: str | None = None) -> tuple[dict, dict, dict]:
     """(inputs, outputs, cfg) of one stage of a plan, as the Snakemake rules wire them."""
+    from . import config as C
+    from . import plan as P
+    from .errors import PhysGSError
+
     p = plan.path
     if name == "prepare":
         kind, src = C.resolve_source(plan.cfgs["prepare"]["scene"])
@@ -76,6 +79,16 @@ def stage_io(plan: P.Plan, name: str, step: str | None = None) -> tuple[dict, di
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["snakemake"]:  # every other argument is Snakemake's
+        from .smk_server import main as smk_main
+
+        return smk_main(argv[1:])
+    from . import config as C
+    from . import plan as P
+    from .errors import PhysGSError
+    from .runtime import run_stage, timed_stage_function, write_json
+
     ap = argparse.ArgumentParser(prog="physgs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default=None, help="global config file (default config/config.yaml)")
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -99,6 +112,8 @@ def main(argv=None) -> int:
     sb = sub.add_parser("bench", help="pipeline benchmarks (physgs bench pipeline|startup ...; see pipeline_bench.py)",
                         add_help=False)
     sb.add_argument("rest", nargs=argparse.REMAINDER)
+    sub.add_parser("snakemake", help="run snakemake with these arguments through the warm Snakemake server "
+                   "(no import of Snakemake per run; smk_server.py)", add_help=False)
     args = ap.parse_args(argv)
     if args.cmd == "check":
         return _check(args.config)
