@@ -53,6 +53,32 @@ def command(stage: str, inputs: dict, outputs: dict, cfg: dict, worker_cfg: dict
     return f"{shlex.quote(python or sys.executable)} -m physgs_steps.job {shlex.quote(stage)} {shlex.quote(text)}"
 
 
+class StageFailed(Exception):
+    """A stage that the warm worker ran for a rule's ``run:`` block failed (its message is in
+    the relayed output above and in its log)."""
+
+
+def run_in_worker(stage: str, inputs: dict, outputs: dict, cfg: dict, log: str | None,
+                  worker_cfg: dict | None = None) -> bool:
+    """A stage rule's ``run:`` block (common.smk ``stage_job``), in a thread of Snakemake's own
+    process: hand the job to the warm stage worker straight from there, with no process started
+    for it.  True when the worker ran it (raises :class:`StageFailed` when the stage failed);
+    False when no worker is wanted or none could be started: the rule then runs the job client
+    in its own process (``shell(STAGE_JOB)``), the stage in that process, as a ``shell:`` rule did."""
+    from .worker import DEFAULT_IDLE_SECONDS, run_job, wants_worker
+
+    wcfg = worker_cfg or {}
+    if not wants_worker(stage, wcfg):
+        return False
+    rc = run_job(stage, inputs, outputs, cfg, log, float(wcfg.get("idle_seconds", DEFAULT_IDLE_SECONDS)))
+    if rc is None:
+        sys.stderr.write("physgs worker: none could be started; running the stage in its own process\n")
+        return False
+    if rc != 0:
+        raise StageFailed(f"physgs: {stage} failed in the warm stage worker (exit status {rc}); its log: {log}")
+    return True
+
+
 def read_spec(arg: str) -> dict:
     """The job's spec from ``SPEC`` (JSON text, or ``@path`` of a JSON file)."""
     where = "the job spec (command line)"

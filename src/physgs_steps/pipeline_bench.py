@@ -342,10 +342,13 @@ def _idle_worker(cache: Path, mem: "GpuMemory") -> dict:
 
 
 def stop_workers(cache: Path) -> int:
-    """Stop the warm workers left in ``cache/w`` (they outlive a run by worker.idle_seconds)."""
+    """Stop the warm workers and warm Snakemake servers left in ``cache/w`` (they outlive a run
+    by worker.idle_seconds)."""
+    from . import smk_server as S
     from . import worker as W
 
-    return sum(bool(W.shutdown(p)) for p in sorted((cache / "w").glob("*.sock")))
+    return sum(bool(W.shutdown(p)) for p in sorted((cache / "w").glob("w-*.sock"))) + \
+        sum(bool(S.stop(p)) for p in sorted((cache / "w").glob("s-*.sock")))
 
 
 def breakdown(summary: dict | None) -> dict:
@@ -497,6 +500,160 @@ def startup(target: str = "bear", *, n_gaussians: int | None = None, overrides: 
     return rows
 
 
+# ============================================================================ Snakemake's own time
+FEW_FRAMES = {"sim": {"n_frames": 6}, "bgdo": {"forward_frames": 6}, "render": {"width": 128, "height": 128}}
+PHASES = ("import", "args", "snakefile", "snakefile_parse", "physgs_config", "physgs_plans", "dag_build",
+          "input_functions", "dag_postprocess", "schedule", "jobs", "job_handling", "end")
+
+
+def _worker_seconds(text: str) -> tuple[float, int]:
+    """Sum and count of the stages' "X s in the warm worker" lines of a run's output."""
+    import re
+
+    secs = [float(m) for m in re.findall(r"\] \w+: ([0-9.]+) s in the warm worker", text)]
+    return sum(secs), len(secs)
+
+
+def _server_cpu(log: Path, n_before: int, timeout: float = 5.0) -> float | None:
+    """CPU seconds of the warm Snakemake server's latest run (its log line; the server reaps
+    runs once a second)."""
+    import re
+
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        lines = [ln for ln in (log.read_text().splitlines() if log.exists() else []) if "ended with status" in ln]
+        if len(lines) > n_before:
+            m = re.search(r"([0-9.]+) s CPU", lines[-1])
+            return float(m.group(1)) if m else None
+        time.sleep(0.1)
+    return None
+
+
+def snakemake_overhead(target: str = "bear", *, runs: int = 3, n_gaussians: int | None = None,
+                       overrides: dict | None = None, config=None, workdir=None, few_frames: bool = True,
+                       cache=None, modes=("snakemake", "server"), log=print) -> dict:
+    """Snakemake's own time in a warm run of ``target`` (README "GPU", "Snakemake's own time").
+
+    In a scratch folder (frames cut to 6 and a 128x128 video unless ``few_frames`` is False, so
+    that the stages are cheap and the overhead shows), after one untimed run that makes every
+    output and starts the warm stage worker: ``runs`` times, alternating, each of ``modes`` with
+    nothing to do and with ``--forceall``.  ``snakemake``: ``python -m snakemake`` with its
+    phases timed (smk_phases.py: import, argument parsing, Snakefile, DAG, jobs, end);
+    ``server``: ``physgs snakemake`` through the warm Snakemake server (smk_server.py).  Each
+    row: wall and CPU seconds of the run (Snakemake's process with its job processes; not the
+    worker), the stages' own seconds in the worker, and what is left per job.
+    """
+    from . import smk_server as S
+
+    ov = C_merge(FEW_FRAMES if few_frames else {}, overrides or {})
+    scene = target.split("/")[0]
+    wd = make_workdir(Path(workdir or tempfile.mkdtemp(prefix="physgs-smk-")), scene, n_gaussians, ov, config)
+    bench_cache = wd / ".cache-smk"
+    env = _env(Path(cache) if cache else bench_cache, worker=True)
+    env["PHYSGS_WORKER_DIR"] = str(bench_cache / "w")
+    env.pop(S.ENV_SWITCH, None)
+    from . import config as C
+    from . import plan as P
+
+    sc, abl = P.parse_target(target)
+    video = P.make_plan(C.load_config(wd / "config.yaml"), sc, abl).path("video")
+    base = ["--cores", "1", "--configfile", "config.yaml"]
+    blog = wd / "bench-snakemake.log"
+    _run([sys.executable, "-m", "snakemake", *base, "--", video], wd, env, blog)  # outputs made, worker warm
+    if "server" in modes:  # the warm Snakemake server started (its first run imports Snakemake)
+        _run([sys.executable, "-m", "physgs_steps.cli", "snakemake", *base, "--", video], wd, env, blog)
+    slog = None
+    result = {"target": target, "workdir": str(wd), "device": _device(), "overrides": ov, "runs": []}
+    try:
+        for i in range(runs):
+            for mode in modes:
+                for kind in ("noop", "forceall"):
+                    args = base + (["--forceall"] if kind == "forceall" else []) + ["--", video]
+                    ph = wd / f".phases-{mode}-{kind}-{i}.json"
+                    if mode == "snakemake":
+                        cmd = [sys.executable, "-m", "physgs_steps.smk_phases", str(ph), "--", *args]
+                    else:
+                        cmd = [sys.executable, "-m", "physgs_steps.cli", "snakemake", *args]
+                        socks = sorted((bench_cache / "w").glob("s-*.sock"))
+                        slog = socks[0].with_suffix(".log") if socks else slog
+                        n0 = sum("ended with status" in ln for ln in slog.read_text().splitlines()) \
+                            if slog and slog.exists() else 0
+                    start = blog.stat().st_size
+                    cpu: list = []
+                    wall = _run(cmd, wd, env, blog, cpu)
+                    with open(blog) as f:
+                        f.seek(start)
+                        text = f.read()
+                    wsec, njobs = _worker_seconds(text)
+                    row = {"mode": mode, "kind": kind, "run": i, "wall_seconds": round(wall, 3), "jobs": njobs,
+                           "worker_seconds": round(wsec, 3)}
+                    if mode == "snakemake":
+                        row["cpu_seconds"] = round(cpu[0], 3)
+                        phases = json.loads(ph.read_text())
+                        row["phases"] = {k: phases[k] for k in PHASES if k in phases}
+                        row["outside_phases"] = round(wall - phases.get("in_process", wall), 3)
+                        if njobs:
+                            row["per_job_outside_worker"] = round((phases.get("jobs", 0) - wsec) / njobs, 3)
+                    else:
+                        if slog is None:
+                            socks = sorted((bench_cache / "w").glob("s-*.sock"))
+                            slog = socks[0].with_suffix(".log") if socks else None
+                        row["cpu_seconds"] = _server_cpu(slog, n0) if slog else None
+                    row["outside_stages"] = round(wall - wsec, 3)
+                    result["runs"].append(row)
+                    log(_overhead_line(row))
+    finally:
+        stop_workers(bench_cache)
+    return result
+
+
+def C_merge(a: dict, b: dict) -> dict:
+    from . import config as C
+
+    return C.deep_merge(copy.deepcopy(a), b)
+
+
+def _overhead_line(r: dict) -> str:
+    s = (f"{r['mode']:9s} {r['kind']:8s} run {r['run']}: {r['wall_seconds']:6.2f} s wall, "
+         f"{r['cpu_seconds'] if r.get('cpu_seconds') is not None else '?'} s CPU, {r['jobs']} jobs, "
+         f"{r['worker_seconds']:.2f} s in the worker, {r['outside_stages']:.2f} s outside the stages")
+    if r.get("phases"):
+        s += "; " + " ".join(f"{k}={v:.2f}" for k, v in r["phases"].items() if isinstance(v, (int, float)))
+        s += f" exit={r['outside_phases']:.2f}"
+    if r.get("per_job_outside_worker") is not None:
+        s += f"; per job outside the worker {r['per_job_outside_worker']:.3f} s"
+    return s
+
+
+def overhead_table(result: dict) -> str:
+    """Medians of :func:`snakemake_overhead`'s runs per mode and kind (Markdown)."""
+    import statistics
+
+    lines = [f"Snakemake's own time, {result['target']} on {result['device']} (medians of the runs; seconds)", "",
+             "| mode | run | wall | CPU | in the worker | outside the stages | per job outside the worker |",
+             "|---|---|---|---|---|---|---|"]
+    keys = sorted({(r["mode"], r["kind"]) for r in result["runs"]}, key=lambda k: (k[0] != "snakemake", k[1]))
+    for mode, kind in keys:
+        rs = [r for r in result["runs"] if (r["mode"], r["kind"]) == (mode, kind)]
+
+        def med(key):
+            v = [r[key] for r in rs if r.get(key) is not None]
+            return f"{statistics.median(v):.2f}" if v else "-"
+
+        pj = [r["per_job_outside_worker"] for r in rs if r.get("per_job_outside_worker") is not None]
+        lines.append(f"| {mode} | {kind} | {med('wall_seconds')} | {med('cpu_seconds')} | {med('worker_seconds')} | "
+                     f"{med('outside_stages')} | {f'{statistics.median(pj):.3f}' if pj else '-'} |")
+    ph = [r["phases"] for r in result["runs"] if r.get("phases")]
+    if ph:
+        lines += ["", "Phases of `python -m snakemake` (smk_phases.py; medians over its runs, nothing to do and "
+                      "--forceall together):", ""]
+        for k in PHASES:
+            v = [p[k] for p in ph if k in p]
+            if v:
+                lines.append(f"- {k}: {statistics.median(v):.3f}")
+    return "\n".join(lines)
+
+
 HEAVY = ("torch", "taichi", "gsplat", "h5py", "scipy", "sklearn", "pandas", "trimesh", "transformers", "matplotlib",
          "jsonschema", "imageio_ffmpeg", "PIL", "psutil", "yaml")
 
@@ -558,7 +715,7 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(prog="physgs bench", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
-    for name in ("pipeline", "startup"):
+    for name in ("pipeline", "startup", "snakemake"):
         p = sub.add_parser(name)
         p.add_argument("target", nargs="?", default="bear")
         p.add_argument("--n-gaussians", type=int, default=None, help="builtin.n_gaussians of the scene")
@@ -573,6 +730,13 @@ def main(argv=None) -> int:
             p.add_argument("--with-metrics", action="store_true")
             p.add_argument("--until", choices=("final_sim",), default=None,
                            help="stop after the final simulation (e.g. where nothing can render)")
+        if name == "snakemake":
+            p.add_argument("--runs", type=int, default=3, help="timed runs per mode and kind")
+            p.add_argument("--all-frames", action="store_true",
+                           help="keep the config's frame counts and video size (default: 6 frames, 128x128)")
+            p.add_argument("--cache", default=None,
+                           help="Taichi kernel cache to use (default: $PHYSGS_CACHE_DIR, else one in the workdir)")
+            p.add_argument("--modes", default="snakemake,server")
     c = sub.add_parser("chain", help=argparse.SUPPRESS)
     c.add_argument("target")
     c.add_argument("--config", required=True)
@@ -593,7 +757,13 @@ def main(argv=None) -> int:
         _twice(a.target, a.stage, a.step, a.config, a.out)
         return 0
     overrides = parse_sets(a.set)
-    if a.cmd == "startup":
+    if a.cmd == "snakemake":
+        res = snakemake_overhead(a.target, runs=a.runs, n_gaussians=a.n_gaussians, overrides=overrides,
+                                 config=a.config, workdir=a.workdir, few_frames=not a.all_frames,
+                                 cache=a.cache or os.environ.get("PHYSGS_CACHE_DIR"),
+                                 modes=[m for m in a.modes.split(",") if m])
+        print(overhead_table(res))
+    elif a.cmd == "startup":
         res = startup(a.target, n_gaussians=a.n_gaussians, overrides=overrides, config=a.config, workdir=a.workdir)
     else:
         res = measure(a.target, structures=[s for s in a.structures.split(",") if s], n_gaussians=a.n_gaussians,

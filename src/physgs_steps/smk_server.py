@@ -203,11 +203,10 @@ def serve(path: str | os.PathLike, idle_seconds: float = DEFAULT_IDLE_SECONDS) -
     print(f"[smk-server {os.getpid()}] serving {path} (idle limit {idle_seconds:g} s)", file=sys.stderr, flush=True)
     last = time.monotonic()
     runs = 0
+    started: dict[int, tuple[float, list[str]]] = {}
     try:
         while True:
-            with contextlib.suppress(ChildProcessError):
-                while os.waitpid(-1, os.WNOHANG)[0]:
-                    pass
+            _reap(started)
             try:
                 conn, _ = sock.accept()
             except socket.timeout:
@@ -224,7 +223,7 @@ def serve(path: str | os.PathLike, idle_seconds: float = DEFAULT_IDLE_SECONDS) -
                 conn.close()
                 continue
             op = req.get("op")
-            if op == "stop":
+            if op in ("stop", "shutdown"):
                 with contextlib.suppress(OSError):
                     _send(conn, {"bye": os.getpid()})
                 conn.close()
@@ -247,6 +246,7 @@ def serve(path: str | os.PathLike, idle_seconds: float = DEFAULT_IDLE_SECONDS) -
                 sock.close()
                 signal.signal(signal.SIGINT, signal.default_int_handler)
                 _child(conn, req, fds)  # never returns
+            started[pid] = (time.monotonic(), req["argv"])
             conn.close()
             for fd in fds:
                 os.close(fd)
@@ -255,6 +255,23 @@ def serve(path: str | os.PathLike, idle_seconds: float = DEFAULT_IDLE_SECONDS) -
             if os.stat(path).st_ino == ino:
                 path.unlink()
         sock.close()
+
+
+def _reap(started: dict) -> None:
+    """Collect ended runs; log each one's wall and CPU seconds (Snakemake's process and the job
+    processes it waited for: bash, job clients; not the warm stage worker)."""
+    while True:
+        try:
+            pid, status, ru = os.wait4(-1, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if not pid:
+            return
+        t0, argv = started.pop(pid, (None, []))
+        wall = f"{time.monotonic() - t0:.2f} s wall (seen at most 1 s late), " if t0 is not None else ""
+        print(f"[smk-server {os.getpid()}] run {pid} ended with status {os.waitstatus_to_exitcode(status)}: {wall}"
+              f"{ru.ru_utime + ru.ru_stime:.2f} s CPU ({ru.ru_utime:.2f} user, {ru.ru_stime:.2f} system), "
+              f"peak RSS {ru.ru_maxrss / 1024:.0f} MiB: snakemake {' '.join(argv)}", file=sys.stderr, flush=True)
 
 
 # ============================================================================ client

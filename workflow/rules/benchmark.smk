@@ -37,8 +37,8 @@ rule bench_stress:
         mem_mb=mem_mb("bench_stress"),
         runtime=runtime_min("bench_stress"),
         gpu=gpu_count("bench_stress"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)
 
 
 rule benchmark_stage_table:

@@ -135,12 +135,25 @@ def runtime_min(stage):
     return lambda wildcards, attempt: job_request(stage, wildcards)["runtime"] * attempt
 
 
-# ---- the stage rules' command (src/physgs_steps/job.py)
-# Each stage's job runs `{params.job} {log:q}`: a client that imports no Snakemake and no numpy
-# and hands the job to the warm stage worker (worker.py), or runs the stage in its own process
-# where no worker is wanted. params.job is derived from the job's input and output, so
-# Snakemake's params rerun trigger compares params.cfg alone, as with the former script: rules.
+# ---- the stage rules' job (src/physgs_steps/job.py)
+# Each stage rule's `run:` block is `stage_job(rule, input, output, params, log) or
+# shell(STAGE_JOB)`. Snakemake runs a local job's `run:` block in a thread of its own process
+# (profiles/default sets force-use-threads; a job Snakemake spawns itself, e.g. on a SLURM node,
+# gets --force-use-threads from it): where the warm stage worker serves the stage (worker.py),
+# stage_job hands the job to it over its socket from there, with no process started per job.
+# Otherwise (no worker wanted or none could start) it returns False and the job runs
+# `{params.job} {log:q}`: the job client (no Snakemake, no numpy) running the stage in its own
+# process. params.job is derived from the job's input and output, so Snakemake's params rerun
+# trigger compares params.cfg alone.
 STAGE_JOB = "{params.job} {log:q}"
+
+
+def stage_job(stage, input, output, params, log):
+    """True when the warm stage worker ran this job of ``stage`` (a failed stage raises)."""
+    from physgs_steps.job import run_in_worker
+
+    return run_in_worker(stage, dict(input.items()), dict(output.items()), params.cfg, log[0] if log else None,
+                         config.get("worker"))
 
 
 def job_command(stage, cfg):

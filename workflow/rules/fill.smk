@@ -14,8 +14,8 @@ rule cluster:
     resources:
         mem_mb=mem_mb("cluster"),
         runtime=runtime_min("cluster"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)
 
 
 rule fill:
@@ -37,5 +37,5 @@ rule fill:
     resources:
         mem_mb=mem_mb("fill"),
         runtime=runtime_min("fill"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)

@@ -18,8 +18,8 @@ rule vlm_params:
         mem_mb=mem_mb("vlm_params"),
         runtime=runtime_min("vlm_params"),
         gpu=gpu_count("vlm_params"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)
 
 
 # A scene whose instances are all fully pinned leaves vlm_params out: params come from the file.
@@ -37,5 +37,5 @@ rule pinned_params:
         "results/{scene}/logs/pinned_params-{params_id}.log",
     benchmark:
         "results/{scene}/benchmarks/pinned_params-{params_id}.tsv"
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)

@@ -14,5 +14,5 @@ rule prepare:
     resources:
         mem_mb=mem_mb("prepare"),
         runtime=runtime_min("prepare"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)

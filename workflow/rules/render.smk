@@ -16,8 +16,8 @@ rule render:
         mem_mb=mem_mb("render"),
         runtime=runtime_min("render"),
         gpu=gpu_count("render"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)
 
 
 rule metrics:
@@ -38,5 +38,5 @@ rule metrics:
         mem_mb=mem_mb("metrics"),
         runtime=runtime_min("metrics"),
         gpu=gpu_count("metrics"),   # 0 unless "metrics" is in resources.gpu_stages (a VideoPhy2 rater on a GPU)
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)

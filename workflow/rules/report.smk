@@ -12,5 +12,5 @@ rule stage_report:
         "results/{target}/logs/stage_report.log",
     benchmark:
         "results/{target}/benchmarks/stage_report.tsv"
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)

@@ -14,8 +14,8 @@ rule forward_sim:
         mem_mb=mem_mb("forward_sim"),
         runtime=runtime_min("forward_sim"),
         gpu=gpu_count("forward_sim"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)
 
 
 rule bgdo_update:
@@ -36,8 +36,8 @@ rule bgdo_update:
         mem_mb=mem_mb("bgdo_update"),
         runtime=runtime_min("bgdo_update"),
         gpu=gpu_count("bgdo_update"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)
 
 
 rule final_sim:
@@ -56,5 +56,5 @@ rule final_sim:
         mem_mb=mem_mb("final_sim"),
         runtime=runtime_min("final_sim"),
         gpu=gpu_count("final_sim"),
-    shell:
-        STAGE_JOB
+    run:
+        stage_job(rule, input, output, params, log) or shell(STAGE_JOB)
