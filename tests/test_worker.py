@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -195,3 +196,54 @@ def test_job_command_round_trip(tmp_path, monkeypatch):
     assert argv[4].startswith("@") and Path(argv[4][1:]).parent == (tmp_path / ".snakemake" / "physgs_jobs").resolve()
     assert J.read_spec(argv[4])["cfg"] == big
     assert shlex.split(J.command("render", {}, {}, big))[4] == argv[4]  # the same spec, the same file
+
+
+def test_run_block_hands_the_job_to_the_worker(wdir, tmp_path, monkeypatch):
+    """The stage rules' run: block (common.smk stage_job -> job.run_in_worker), in Snakemake's own
+    process: the worker runs the job (no process started for it) and freezes what survives its
+    garbage collection; without a worker wanted it returns False (the rule then runs the job
+    client); a failed stage raises with the stage and its log named."""
+    from physgs_steps import job as J
+
+    monkeypatch.delenv("PHYSGS_WORKER", raising=False)
+    wcfg = {"enabled": True, "stages": ["stage_report"]}
+    ins, outs, cfg, log, out = _report_job(tmp_path, "r1")
+    assert J.run_in_worker("stage_report", ins, outs, cfg, log, wcfg) is True
+    assert "prepare\t\t1.500" in out.read_text()
+    info = W.ping()
+    assert info["jobs"] == 1 and info["gc_frozen"] > 0  # the next job's collection skips the warm state
+
+    ins, outs, cfg, log, out = _report_job(tmp_path, "r2")
+    assert J.run_in_worker("stage_report", ins, outs, cfg, log, {"enabled": False}) is False
+    assert not out.exists() and W.ping()["jobs"] == 1
+
+    ins, outs, cfg, log, out = _report_job(tmp_path, "r3")
+    bad = {"jobs": [{"rule": "prepare", "benchmark": str(tmp_path / "none.tsv")}]}
+    with pytest.raises(J.StageFailed, match=r"stage_report failed in the warm stage worker .* its log: .*r3.log"):
+        J.run_in_worker("stage_report", ins, outs, bad, log, wcfg)
+    assert not out.exists()
+
+
+def test_snakemake_runs_stage_jobs_in_its_own_thread(wdir, tmp_path, monkeypatch):
+    """A local `snakemake --cores 1` run (profiles/default: force-use-threads) hands each stage job
+    to the warm worker from Snakemake's own process: no job command is run (-p prints none), no
+    Snakemake process is spawned per job, and the log, benchmark and output are made."""
+    import subprocess
+
+    repo = Path(W.__file__).resolve().parents[2]
+    d = tmp_path / "run"
+    d.mkdir()
+    for name in ("Snakefile", "workflow", "config", "src", "tests", "profiles"):
+        (d / name).symlink_to(repo / name)
+    env = dict(os.environ, PHYSGS_WORKER="1", PHYSGS_WORKER_DIR=str(wdir), PYTHONPATH=str(repo / "src"))
+    monkeypatch.setenv("PYTHONPATH", env["PYTHONPATH"])  # this process names the same worker (fixture stops it)
+    r = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", "-p", "results/bear/scene.ply",
+                        "--configfile", "tests/slurm/config.yaml"], cwd=d, capture_output=True, text=True,
+                       timeout=600, stdin=subprocess.DEVNULL, env=env)
+    out = r.stdout + r.stderr
+    assert r.returncode == 0, out[-4000:]
+    assert re.search(r"\] prepare: .* in the warm worker .* handed over by Snakemake's main process", out), out[-3000:]
+    assert "physgs_steps.job" not in out, out[-3000:]
+    assert (d / "results" / "bear" / "scene.ply").stat().st_size > 0
+    assert (d / "results" / "bear" / "benchmarks" / "prepare.tsv").read_text().startswith("s\t")
+    assert "done in" in (d / "results" / "bear" / "logs" / "prepare.log").read_text()

@@ -59,7 +59,7 @@ class StageFailed(Exception):
 
 
 def run_in_worker(stage: str, inputs: dict, outputs: dict, cfg: dict, log: str | None,
-                  worker_cfg: dict | None = None) -> bool:
+                  worker_cfg: dict | None = None, client: str = "Snakemake's process") -> bool:
     """A stage rule's ``run:`` block (common.smk ``stage_job``), in a thread of Snakemake's own
     process: hand the job to the warm stage worker straight from there, with no process started
     for it.  True when the worker ran it (raises :class:`StageFailed` when the stage failed);
@@ -70,7 +70,7 @@ def run_in_worker(stage: str, inputs: dict, outputs: dict, cfg: dict, log: str |
     wcfg = worker_cfg or {}
     if not wants_worker(stage, wcfg):
         return False
-    rc = run_job(stage, inputs, outputs, cfg, log, float(wcfg.get("idle_seconds", DEFAULT_IDLE_SECONDS)))
+    rc = run_job(stage, inputs, outputs, cfg, log, float(wcfg.get("idle_seconds", DEFAULT_IDLE_SECONDS)), client)
     if rc is None:
         sys.stderr.write("physgs worker: none could be started; running the stage in its own process\n")
         return False

@@ -241,7 +241,7 @@ def _holding() -> dict:
         with contextlib.suppress(Exception):
             if torch.cuda.is_initialized():
                 reserved = round(torch.cuda.memory_reserved() / 2**20, 1)
-    return {"rss_mb": rss, "cuda_reserved_mb": reserved,
+    return {"rss_mb": rss, "cuda_reserved_mb": reserved, "gc_frozen": gc.get_freeze_count(),
             "loaded": [m for m in ("torch", "taichi", "gsplat") if m in sys.modules]}
 
 
@@ -287,7 +287,8 @@ def _run_job(req: dict, conn: socket.socket) -> tuple[int, bool]:
         t_imp = round(time.perf_counter() - t0, 3)
         summary = run_stage(name, fn, req["inputs"], req["outputs"], req["cfg"], req.get("log"), import_seconds=t_imp)
         out.write(f"[worker {os.getpid()}] {name}: {time.perf_counter() - t0:.2f} s in the warm worker "
-                  f"({t_imp:.2f} s importing its modules), peak RSS {_peak_rss_mb():.0f} MiB\n")
+                  f"({t_imp:.2f} s importing its modules), peak RSS {_peak_rss_mb():.0f} MiB, "
+                  f"handed over by {req.get('client') or 'a job process'} (pid {req.get('client_pid')})\n")
     except SystemExit as e:  # run_stage: the stage failed (message logged) or crashed
         rc = int(e.code) if isinstance(e.code, int) else 1
         healthy = not getattr(e, "physgs_crash", False)
@@ -429,7 +430,7 @@ def _start(path: Path, idle_seconds: float) -> socket.socket | None:
 
 
 def run_job(stage: str, inputs: dict, outputs: dict, cfg: dict, log: str | None,
-            idle_seconds: float = DEFAULT_IDLE_SECONDS) -> int | None:
+            idle_seconds: float = DEFAULT_IDLE_SECONDS, client: str | None = None) -> int | None:
     """Run one job in the warm worker (starting it if needed); relay its output to stderr.
 
     Returns the stage's exit status, or None when no worker could be reached (the caller then
@@ -437,7 +438,8 @@ def run_job(stage: str, inputs: dict, outputs: dict, cfg: dict, log: str | None,
     """
     path = socket_path()
     req = {"op": "run", "protocol": PROTOCOL, "stage": stage, "inputs": dict(inputs), "outputs": dict(outputs),
-           "cfg": cfg, "log": str(log) if log else None, "cwd": os.getcwd()}
+           "cfg": cfg, "log": str(log) if log else None, "cwd": os.getcwd(), "client": client or "the job client",
+           "client_pid": os.getpid()}
     for attempt in range(2):  # a worker that was just exiting (idle, stopped) drops the job unread: start one
         conn = _connect(path) or _start(path, idle_seconds)
         if conn is None:

@@ -152,8 +152,9 @@ def stage_job(stage, input, output, params, log):
     """True when the warm stage worker ran this job of ``stage`` (a failed stage raises)."""
     from physgs_steps.job import run_in_worker
 
+    who = "Snakemake's main process" if workflow.is_main_process else "a Snakemake process of this job"
     return run_in_worker(stage, dict(input.items()), dict(output.items()), params.cfg, log[0] if log else None,
-                         config.get("worker"))
+                         config.get("worker"), who)
 
 
 def job_command(stage, cfg):
