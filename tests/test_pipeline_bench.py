@@ -50,3 +50,21 @@ def test_table_lists_every_run():
     text = B.table(res)
     assert "| inprocess | warm | 3.50 | 1.2 | 800.0 | render 1.00, fill 0.50 |" in text
     assert "| worker | cold | 9.00 |" in text
+
+
+def test_snakemake_overhead_table_and_worker_lines():
+    from physgs_steps import pipeline_bench as B
+
+    text = ("[worker 12] prepare: 0.05 s in the warm worker (0.00 s importing its modules), peak RSS 496 MiB, "
+            "handed over by Snakemake's main process (pid 3)\n"
+            "[worker 12] fill: 0.75 s in the warm worker (0.00 s importing its modules), peak RSS 523 MiB\n")
+    secs, n = B._worker_seconds(text)
+    assert n == 2 and abs(secs - 0.80) < 1e-9
+    runs = [{"mode": m, "kind": k, "run": i, "wall_seconds": w, "cpu_seconds": 1.0, "jobs": 10 if k == "forceall" else 0,
+             "worker_seconds": 5.0 if k == "forceall" else 0.0, "outside_stages": w - (5.0 if k == "forceall" else 0),
+             "phases": {"import": 2.0 if m == "snakemake" else 0.0, "jobs": 6.0}, "outside_phases": 0.3,
+             "per_job_outside_worker": 0.1 if k == "forceall" else None}
+            for i, w in enumerate((3.0, 4.0)) for m in ("snakemake", "server") for k in ("noop", "forceall")]
+    t = B.overhead_table({"target": "bear", "device": "cpu", "runs": runs})
+    assert "| snakemake | noop | 3.50 |" in t and "| server | forceall | 3.50 |" in t
+    assert "| snakemake | forceall | 2.00 |" in t  # the phase table: import

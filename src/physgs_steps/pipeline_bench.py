@@ -580,7 +580,8 @@ def snakemake_overhead(target: str = "bear", *, runs: int = 3, n_gaussians: int 
                             if slog and slog.exists() else 0
                     start = blog.stat().st_size
                     cpu: list = []
-                    wall = _run(cmd, wd, env, blog, cpu)
+                    run_env = env if mode == "snakemake" else dict(env, PHYSGS_SMK_PHASES=str(ph))
+                    wall = _run(cmd, wd, run_env, blog, cpu)
                     with open(blog) as f:
                         f.seek(start)
                         text = f.read()
@@ -589,16 +590,19 @@ def snakemake_overhead(target: str = "bear", *, runs: int = 3, n_gaussians: int 
                            "worker_seconds": round(wsec, 3)}
                     if mode == "snakemake":
                         row["cpu_seconds"] = round(cpu[0], 3)
-                        phases = json.loads(ph.read_text())
-                        row["phases"] = {k: phases[k] for k in PHASES if k in phases}
-                        row["outside_phases"] = round(wall - phases.get("in_process", wall), 3)
-                        if njobs:
-                            row["per_job_outside_worker"] = round((phases.get("jobs", 0) - wsec) / njobs, 3)
                     else:
                         if slog is None:
                             socks = sorted((bench_cache / "w").glob("s-*.sock"))
                             slog = socks[0].with_suffix(".log") if socks else None
                         row["cpu_seconds"] = _server_cpu(slog, n0) if slog else None
+                    if ph.exists():
+                        phases = json.loads(ph.read_text())
+                        row["phases"] = {k: phases[k] for k in PHASES if k in phases}
+                        # outside Snakemake's timed run: interpreter start and teardown (snakemake);
+                        # the client's start, the fork and the relay (server)
+                        row["outside_phases"] = round(wall - phases.get("in_process", wall), 3)
+                        if njobs:
+                            row["per_job_outside_worker"] = round((phases.get("jobs", 0) - wsec) / njobs, 3)
                     row["outside_stages"] = round(wall - wsec, 3)
                     result["runs"].append(row)
                     log(_overhead_line(row))
@@ -619,7 +623,7 @@ def _overhead_line(r: dict) -> str:
          f"{r['worker_seconds']:.2f} s in the worker, {r['outside_stages']:.2f} s outside the stages")
     if r.get("phases"):
         s += "; " + " ".join(f"{k}={v:.2f}" for k, v in r["phases"].items() if isinstance(v, (int, float)))
-        s += f" exit={r['outside_phases']:.2f}"
+        s += f" outside={r['outside_phases']:.2f}"
     if r.get("per_job_outside_worker") is not None:
         s += f"; per job outside the worker {r['per_job_outside_worker']:.3f} s"
     return s
@@ -643,14 +647,20 @@ def overhead_table(result: dict) -> str:
         pj = [r["per_job_outside_worker"] for r in rs if r.get("per_job_outside_worker") is not None]
         lines.append(f"| {mode} | {kind} | {med('wall_seconds')} | {med('cpu_seconds')} | {med('worker_seconds')} | "
                      f"{med('outside_stages')} | {f'{statistics.median(pj):.3f}' if pj else '-'} |")
-    ph = [r["phases"] for r in result["runs"] if r.get("phases")]
-    if ph:
-        lines += ["", "Phases of `python -m snakemake` (smk_phases.py; medians over its runs, nothing to do and "
-                      "--forceall together):", ""]
+    lines += ["", "Phases (smk_phases.py; medians; `outside`: interpreter start and teardown for snakemake, the "
+                  "client's start, fork and relay for the server; `jobs`: the stage jobs' run: blocks, "
+                  "`job_handling`: Snakemake's own work per job)", "",
+              "| mode | run | " + " | ".join(PHASES) + " | outside |", "|---|---|" + "---|" * (len(PHASES) + 1)]
+    for mode, kind in keys:
+        ph = [r for r in result["runs"] if (r["mode"], r["kind"]) == (mode, kind) and r.get("phases")]
+        if not ph:
+            continue
+        cells = []
         for k in PHASES:
-            v = [p[k] for p in ph if k in p]
-            if v:
-                lines.append(f"- {k}: {statistics.median(v):.3f}")
+            v = [r["phases"][k] for r in ph if k in r["phases"]]
+            cells.append(f"{statistics.median(v):.2f}" if v else "-")
+        out = statistics.median(r["outside_phases"] for r in ph)
+        lines.append(f"| {mode} | {kind} | " + " | ".join(cells) + f" | {out:.2f} |")
     return "\n".join(lines)
 
 

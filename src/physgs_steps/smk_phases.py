@@ -147,6 +147,24 @@ def report() -> dict:
     return out
 
 
+def start(out_path: str) -> None:
+    """Time this process's Snakemake run from now (the warm server's child, Snakemake already
+    imported: smk_server.py with ``PHYSGS_SMK_PHASES=<out.json>``); written at exit."""
+    global T0
+    T0 = time.perf_counter()
+    TIMES.clear()
+    COUNTS.clear()
+    t = time.perf_counter()
+    _install()
+    TIMES["harness"] = time.perf_counter() - t
+
+    def write():
+        with open(out_path, "w") as f:
+            json.dump(report(), f, indent=1)
+
+    atexit.register(write)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if len(argv) < 2 or argv[1] != "--":

@@ -106,6 +106,8 @@ def _warm() -> None:
     with contextlib.suppress(ImportError):  # what common.smk's config validation uses
         import jsonschema  # noqa: F401
         import yaml  # noqa: F401
+    with contextlib.suppress(ImportError):  # validation.smk plans its runs with numpy (0.1-0.2 s to import)
+        import numpy  # noqa: F401
 
 
 def _recv_request(conn: socket.socket) -> tuple[dict, list[int]]:
@@ -159,6 +161,10 @@ def _child(conn: socket.socket, req: dict, fds: list[int]) -> None:
                     os.killpg(0, signal.SIGINT)
 
         threading.Thread(target=watch, daemon=True).start()
+        if os.environ.get("PHYSGS_SMK_PHASES"):  # time Snakemake's phases (physgs bench snakemake)
+            from .smk_phases import start
+
+            start(os.environ["PHYSGS_SMK_PHASES"])
         from snakemake.cli import main as smk_main
 
         try:
