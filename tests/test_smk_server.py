@@ -104,3 +104,21 @@ def test_ctrl_c_stops_the_run(wf):
     assert p.returncode != 0, out
     assert not (d / "out" / "slow.txt").exists()
     assert "Terminating processes on user request" in out
+
+
+def test_warm_package_kept_only_for_this_source_tree(tmp_path):
+    """A child keeps the server's imported physgs_steps only where the workflow would import that
+    very package (<cwd>/src/physgs_steps); another checkout imports its own."""
+    src = Path(S.__file__).resolve().parents[1]
+    same = tmp_path / "same"
+    same.mkdir()
+    (same / "Snakefile").write_text("")
+    (same / "src").symlink_to(src)
+    assert S._keeps_package(["--cores", "1"], str(same))
+    assert not S._keeps_package(["-s", "other/Snakefile"], str(same))
+    assert not S._keeps_package(["--directory=elsewhere"], str(same))
+    other = tmp_path / "other"
+    (other / "src" / "physgs_steps").mkdir(parents=True)
+    (other / "Snakefile").write_text("")
+    assert not S._keeps_package(["--cores", "1"], str(other))
+    assert not S._keeps_package([], str(tmp_path))  # no Snakefile here

@@ -29,8 +29,8 @@ The server is forked from before any thread starts; each child is a normal Snake
 """
 from __future__ import annotations
 
-import array
 import contextlib
+import importlib
 import json
 import os
 import signal
@@ -108,6 +108,30 @@ def _warm() -> None:
         import yaml  # noqa: F401
     with contextlib.suppress(ImportError):  # validation.smk plans its runs with numpy (0.1-0.2 s to import)
         import numpy  # noqa: F401
+    for mod in WORKFLOW_MODULES:  # kept in a child only for a workflow of this very source tree (_keeps_package)
+        with contextlib.suppress(Exception):
+            importlib.import_module(mod)
+
+
+# what common.smk and validation.smk import while Snakemake parses them (no state: their caches
+# fill on first use, in the child)
+WORKFLOW_MODULES = ("physgs_steps.config", "physgs_steps.plan", "physgs_steps.errors", "physgs_steps.worker",
+                    "physgs_steps.resources", "physgs_steps.job", "physgs_steps.benchmark.spec",
+                    "physgs_steps.validation")
+
+
+def _keeps_package(argv: list[str], cwd: str) -> bool:
+    """Whether the run's workflow imports the ``physgs_steps`` this server imported: the Snakefile
+    is ``<cwd>/Snakefile`` (no -s/--snakefile, -d/--directory) and common.smk puts ``<cwd>/src``
+    first on sys.path, which must hold this very package (the server's key covers its sources)."""
+    if any(a in ("-s", "--snakefile", "-d", "--directory") or a.startswith(("--snakefile=", "--directory="))
+           for a in argv):
+        return False
+    here = Path(__file__).resolve().parent
+    try:
+        return (Path(cwd) / "Snakefile").is_file() and (Path(cwd) / "src" / "physgs_steps").resolve() == here
+    except OSError:
+        return False
 
 
 def _recv_request(conn: socket.socket) -> tuple[dict, list[int]]:
@@ -142,8 +166,9 @@ def _child(conn: socket.socket, req: dict, fds: list[int]) -> None:
         import tempfile
 
         tempfile.tempdir = None  # the client's TMPDIR
-        for name in [m for m in sys.modules if m == "physgs_steps" or m.startswith("physgs_steps.")]:
-            del sys.modules[name]  # the workflow imports its own (common.smk puts its src/ first)
+        if not _keeps_package(req["argv"], req["cwd"]):
+            for name in [m for m in sys.modules if m == "physgs_steps" or m.startswith("physgs_steps.")]:
+                del sys.modules[name]  # the workflow imports its own (common.smk puts its src/ first)
         for p in req.get("pythonpath", []):
             if p not in sys.path:
                 sys.path.insert(0, p)
