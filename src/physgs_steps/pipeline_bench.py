@@ -5,6 +5,7 @@ table uses the same entry point, :func:`measure`).
     physgs bench pipeline bear                          # default bear, every structure, cold + warm
     physgs bench pipeline bear --n-gaussians 300000 --set render.width=1920 --set render.height=1080
     physgs bench startup bear                           # per-stage fixed overhead (process vs warm)
+    physgs bench snakemake bear                         # Snakemake's own time per phase, warm (6 frames)
 
 Structures (``--structures``), each run twice in a fresh scratch folder: first with an empty
 Taichi kernel cache (``cold``; gsplat's CUDA code stays built, in its machine-wide cache), then
@@ -14,7 +15,12 @@ again (``warm``):
   before the warm worker (and as ``benchmarks/gpu_pipeline.sh`` measured the issue's table);
 * ``inprocess``: every job in one process, in order (``physgs stages``): the floor;
 * ``snakemake``: ``snakemake --cores 1 --forceall <video>`` with ``worker.enabled: false``;
-* ``worker``: the same Snakemake run with the warm worker on (the default on a GPU machine).
+* ``worker``: the same Snakemake run with the warm worker on (the default on a GPU machine);
+* ``server`` (not in the default list): as ``worker``, through ``physgs snakemake`` (the warm
+  Snakemake server, smk_server.py): its cold run includes the server's start (one Snakemake import).
+
+``physgs bench snakemake`` times Snakemake's own share of a warm run, phase by phase
+(:func:`snakemake_overhead`).
 
 Each row gives the whole pipeline's seconds (``metrics`` excluded unless ``--with-metrics``,
 as in the issue), the seconds of each job, the simulation's substep seconds (the three MPM
@@ -252,7 +258,7 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
     GPU memory is counted above ``gpu_baseline`` (MiB in use) when given, else above the level
     at the start of this run."""
     jobs = _jobs(wd, target, with_metrics, until)
-    env = _env(cache, worker=structure == "worker")
+    env = _env(cache, worker=structure in ("worker", "server"))
     rows: list[dict] = []
     with GpuMemory(gpu_index, baseline=gpu_baseline) as mem:
         t0 = time.perf_counter()
@@ -288,10 +294,11 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
             plan = P.make_plan(C.load_config(wd / "config.yaml"), scene, abl)
             goal = plan.path("final") if until == "final_sim" else plan.path("metrics") if with_metrics \
                 else plan.path("video")
-            cmd = [sys.executable, "-m", "snakemake", "--cores", "1", "--forceall", "--configfile", "config.yaml",
+            smk = ["-m", "physgs_steps.cli", "snakemake"] if structure == "server" else ["-m", "snakemake"]
+            cmd = [sys.executable, *smk, "--cores", "1", "--forceall", "--configfile", "config.yaml",
                    "--", goal]  # the worker is switched by PHYSGS_WORKER (_env)
             _run(cmd, wd, env, log)
-            if structure == "worker":
+            if structure in ("worker", "server"):
                 idle = _idle_worker(cache, mem)
             for name, step in jobs:
                 b = Path(wd / plan.benchmark_path(name, step))
@@ -308,7 +315,7 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
                              "held_frames": st.get("held_frames"), "peak_gpu_mib": None,
                              "breakdown": breakdown(summ)})
         total = time.perf_counter() - t0
-        if structure == "worker":
+        if structure in ("worker", "server"):
             total -= idle.pop("sampled_seconds")
     sims = [r for r in rows if r["stage"] in SIM_STAGES and r["simulate_seconds"] is not None]
     sim = [r["simulate_seconds"] for r in sims]
@@ -318,7 +325,7 @@ def run_structure(structure: str, wd: Path, target: str, cache: Path, log: Path,
            "substeps": sum(n_sub) if sim and None not in n_sub else None,
            "peak_gpu_mib": mem.peak_above_baseline,
            "gpu_baseline_mib": mem.baseline}
-    if structure == "worker":
+    if structure in ("worker", "server"):
         res["idle_worker"] = idle
     return res
 
@@ -331,7 +338,7 @@ def _idle_worker(cache: Path, mem: "GpuMemory") -> dict:
     from . import worker as W
 
     t0 = time.perf_counter()
-    socks = sorted((cache / "w").glob("*.sock"))
+    socks = sorted((cache / "w").glob("w-*.sock"))
     info = W.ping(socks[0]) if socks else None
     time.sleep(0.5)
     gpu = None
