@@ -3,12 +3,14 @@ against the full particle set, on a real scene: the particles of a pipeline run'
 simulation (its particles.h5 and BGDO's last params.json) simulated for a few frames with the
 frame loop of final_sim (run_frames: adaptive substeps, rest hold), once per setting.
 
-    python benchmarks/bench_rigid_proxies.py RUN_DIR SCENE [frames] [--ppc none 1 2] [--threads N]
+    python benchmarks/bench_rigid_proxies.py RUN_DIR SCENE [frames] [--ppc none jitter 1 2] [--threads N]
 
 RUN_DIR is the directory snakemake ran in (results/SCENE/fill/*/particles.h5,
 results/SCENE/sim/*/it*/params.json); the scene's config comes from config/ here.  Prints per
 setting the simulated particles, substeps and seconds of substepping (one thread unless
---threads), and against the first setting (the reference, ``none``: every particle): the
+--threads), and against the first setting (the reference, ``none``: every particle; ``jitter``
+is every particle too, with every position moved by a random 1e-6 domain units (3e-5 cells at
+grid 32), which shows how far the scene itself amplifies a rounding-size change): the
 largest difference over the frames of each rigid body's centre (grid cells) and rotation
 (degrees), the deformable instances' final state (mean and largest particle displacement
 difference, cells), and the contact between each deformable and each rigid instance: the 20
@@ -53,8 +55,11 @@ par, mats, labels = S.load_materials(params[-1], parts["label"])
 log = logging.getLogger("bench")
 runs = {}
 for ppc in a.ppc:
-    value = None if ppc == "none" else float(ppc)
-    sol = S.build_solver(parts, mats, labels, {"sim": {**sim, "rigid_particles_per_cell": value}, "scene": scene},
+    value = None if ppc in ("none", "jitter") else float(ppc)
+    p_run = dict(parts)
+    if ppc == "jitter":
+        p_run["x"] = (parts["x"] + np.random.default_rng(0).uniform(-1e-6, 1e-6, parts["x"].shape)).astype(np.float32)
+    sol = S.build_solver(p_run, mats, labels, {"sim": {**sim, "rigid_particles_per_cell": value}, "scene": scene},
                          log, par)
     stepper = TimeStepper.from_config(sim)
     rest = RestPolicy.from_config(sim.get("rest"), sol.dynamics)
