@@ -173,8 +173,11 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
         else:
             log.info("instance %s: %d particles -> SIMULATED (deformable), wave speed %.3g m/s", m.describe(), n,
                      m.wave_speed)
-    log.info("MPM: %d particles simulated (%d static), grid %d^3 (dx %.4g m), backend %s, %s", solver.n_particles,
-             solver.n_input - solver.n_particles, solver.n_grid, solver.dx, solver.arch, describe_counts(solver.bound))
+    n_static = int(sum(n for m, n in zip(materials, counts) if m.fixed))
+    n_proxied = solver.n_input - n_static - solver.n_particles + solver.proxy_total()
+    log.info("MPM: %d particles simulated (%d of them proxies for %d rigid-body particles), %d static, grid %d^3 "
+             "(dx %.4g m), backend %s, %s", solver.n_particles, solver.proxy_total(), n_proxied, n_static,
+             solver.n_grid, solver.dx, solver.arch, describe_counts(solver.bound))
     return solver
 
 

@@ -535,6 +535,10 @@ class MPMSolver:
             return None
         return int(np.count_nonzero((self._sim_rows < 0) & (np.r_[self._mat_pre] == k)))
 
+    def proxy_total(self) -> int:
+        """Proxy particles of all rigid bodies (rigid.py "Proxy particles")."""
+        return int(np.count_nonzero(self._sim_rows < 0))
+
     def roles(self) -> list[str]:
         """Per material: ``deformable``, ``rigid`` (free rigid body) or ``fixed`` (static geometry)."""
         return [m.role for m in self.materials]
