@@ -45,6 +45,7 @@ from .mpm.stability import Thresholds, cfl_note
 from .mpm.timestep import TimeStepper
 
 DEFAULT_KEY_FRAMES = (0.0, 0.5, 1.0)
+RIGID_PARTICLES_PER_CELL = 1  # sim.rigid_particles_per_cell's default (sim.schema.yaml)
 CLEARANCE_CELLS = 1.0  # static collider points this close (grid cells) to material touching them are left out
 
 
@@ -150,7 +151,8 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
     static = static_colliders(parts, params, cfg, log) if sim.get("static_colliders", True) else []
     solver = MPMSolver(materials, n_grid=int(sim["n_grid"]), domain_size=float(sim["domain_size"]), dynamics=dyn,
                        backend=_backend(cfg), labels=labels, sort_particles=bool(sim.get("sort_particles", True)),
-                       p2g=str(sim.get("p2g", "auto")), static=static)
+                       p2g=str(sim.get("p2g", "auto")), static=static,
+                       rigid_particles_per_cell=sim.get("rigid_particles_per_cell", RIGID_PARTICLES_PER_CELL))
     index = {l: i for i, l in enumerate(labels)}
     material = np.array([index[int(l)] for l in parts["label"]], np.int64)
     solver.set_particles(parts["x"], parts["vol"], material)
@@ -162,13 +164,20 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
                      m.describe(), n)
         elif m.rigid:
             mass = float(parts["vol"][material == k].sum()) * L3 * m.density
+            proxies = solver.proxy_count(k)
             log.info("instance %s: %d particles -> RIGID: one free rigid body of %.4g kg (density x volume), "
-                     "no stress, no time-step limit", m.describe(), n, mass)
+                     "no stress, no time-step limit; %s", m.describe(), n, mass,
+                     f"simulated with {proxies} proxy particles (sim.rigid_particles_per_cell "
+                     f"{solver.rigid_particles_per_cell:g}), the others follow its motion" if proxies is not None
+                     else "every particle simulated")
         else:
             log.info("instance %s: %d particles -> SIMULATED (deformable), wave speed %.3g m/s", m.describe(), n,
                      m.wave_speed)
-    log.info("MPM: %d particles simulated (%d static), grid %d^3 (dx %.4g m), backend %s, %s", solver.n_particles,
-             solver.n_input - solver.n_particles, solver.n_grid, solver.dx, solver.arch, describe_counts(solver.bound))
+    n_static = int(sum(n for m, n in zip(materials, counts) if m.fixed))
+    n_proxied = solver.n_input - n_static - solver.n_particles + solver.proxy_total()
+    log.info("MPM: %d particles simulated (%d of them proxies for %d rigid-body particles), %d static, grid %d^3 "
+             "(dx %.4g m), backend %s, %s", solver.n_particles, solver.proxy_total(), n_proxied, n_static,
+             solver.n_grid, solver.dx, solver.arch, describe_counts(solver.bound))
     return solver
 
 

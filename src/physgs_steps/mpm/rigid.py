@@ -96,6 +96,33 @@ Per substep, after the MPM kernel's second launch:
 4. **scatter**: x_p = c + R r0_p, v_p = V + omega' x r_p, C_p = [omega']x, F_p = R (tau = 0):
    the particle state carries exactly the body's momentum and angular momentum.
 
+Proxy particles
+---------------
+A body's motion is six numbers; its particles only deposit its mass and momentum on the grid
+(so soft material and the covered nodes see it) and gather the grid's momentum back.  The
+fill stage samples every instance at ``fill.particles_per_cell`` before vlm_params decides
+which one is rigid, so a rigid instance comes with as many particles per cell as a soft one,
+and in duck_stone and basket_mat it holds most of them (2,706 of 4,249; 1,366 of 3,598).
+With ``sim.rigid_particles_per_cell`` (the solver's ``rigid_particles_per_cell``) a free body
+is simulated with *proxies*: its particles are grouped by cubes of edge dx / ppc^(1/3) (and by
+their action bits, so scene actions still apply to exactly their particles), one proxy per
+group at the group's centre of mass carrying its mass and volume (:func:`proxy_groups`).
+The body's mass and centre are the full set's (the proxies' mass-weighted centre is the
+full set's by construction).  Its inertia: the proxies lack their groups' own spread, so
+their offsets are stretched by the symmetric A of :func:`moment_match`, which gives them the
+full set's second moment; I0 (the proxies' own, with APIC's term) is then the full set's up
+to rounding, and the reduction's angular momentum of a rigid motion is exactly I omega.  (With
+the proxies' own moment the body would carry a different inertia; with the full set's I0 and
+unstretched proxies the reduction would give I_proxy omega and omega would decay every
+substep.)  A body a few groups across or one group thick (stretch above
+``PROXY_MAX_STRETCH`` or a singular moment) keeps every particle.  The contacts are found at
+the full set's points (``ct_r0``; reduce with ``what`` 1 reads the pose only), so a body rests
+on the ground on its outermost particles as before.  The other particles of the body are not
+in the solver; every output row (``get_state``, ``gather_rows``, ``stats``) places them on the
+body's motion as ``scatter`` does (:meth:`RigidBodies.full_motion`), and ``set_state`` fits the
+body to their state (``fit_state`` with ``full``) and scatters the proxies onto it.  Kernels
+are unchanged: proxies are an ordinary rigid particle set.
+
 Parallel contact solve
 ----------------------
 Steps 2-3 run as ``advance`` on the CPU: one thread per body, Gauss-Seidel in the contacts'
@@ -328,6 +355,43 @@ def body_setup(x: np.ndarray, mass: np.ndarray, dx: float) -> tuple:
     I0 = (m[:, None, None] * ((r0 * r0).sum(1)[:, None, None] * np.eye(3) - r0[:, :, None] * r0[:, None, :])).sum(0)
     I0 += M * dx * dx / 2.0 * np.eye(3)
     return c, r0, I0, M
+
+
+PROXY_MAX_STRETCH = 1.25  # a body whose proxies would need more stretch is simulated with its full set
+
+
+def proxy_groups(x: np.ndarray, act: np.ndarray, edge: float) -> np.ndarray:
+    """The proxy particle of each particle of one rigid body (module docs "Proxy particles"):
+    [n] group index 0..G-1 by the cube of edge ``edge`` (the unit of ``x``, cubes aligned with
+    the origin) the particle lies in and its action bits ``act`` [n] (particles under different
+    scene actions never share a proxy)."""
+    cell = np.floor(np.asarray(x, np.float64) / float(edge)).astype(np.int64)
+    key = np.concatenate([cell, np.asarray(act, np.int64)[:, None]], 1)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    return inv.reshape(-1)
+
+
+def moment_match(rp: np.ndarray, mp: np.ndarray, rf: np.ndarray, mf: np.ndarray) -> np.ndarray | None:
+    """The symmetric positive definite A [3, 3] with sum mp (A rp)(A rp)^T = sum mf rf rf^T:
+    proxy offsets rp [m, 3] (masses mp) stretched by A have the second moment, hence the
+    inertia, of the full set's offsets rf [n, 3] (masses mf).  (The proxies sit at the mass
+    centres of their groups, so their second moment lacks the groups' own spread, a fraction
+    (group size / body size)^2 of it.)  None when the proxies' moment is singular or the stretch
+    exceeds PROXY_MAX_STRETCH (a body a few groups across)."""
+    Sp = (np.asarray(mp, np.float64)[:, None, None] * rp[:, :, None] * rp[:, None, :]).sum(0)
+    Sf = (np.asarray(mf, np.float64)[:, None, None] * rf[:, :, None] * rf[:, None, :]).sum(0)
+    ev, U = np.linalg.eigh(Sp)
+    if ev.min() <= 1e-9 * max(ev.max(), 1e-300):
+        return None
+    h = U @ np.diag(np.sqrt(ev)) @ U.T  # Sp^(1/2)
+    hi = U @ np.diag(1.0 / np.sqrt(ev)) @ U.T
+    e2, U2 = np.linalg.eigh(h @ Sf @ h)
+    mid = U2 @ np.diag(np.sqrt(np.maximum(e2, 0.0))) @ U2.T
+    A = hi @ mid @ hi
+    A = 0.5 * (A + A.T)
+    if np.linalg.eigvalsh(A).max() > PROXY_MAX_STRETCH:
+        return None
+    return A
 
 
 GPU_PARTICLES_PER_CHUNK = 64  # CUDA: rigid particles per thread of the body reduction
@@ -740,21 +804,54 @@ class RigidBodies:
         x: [P, 3] particle positions (m) in storage order; mass: [P] (kg).
         dx: grid spacing (m); n_chunks: threads of the reduction (:func:`reduce_chunks`).
         solve: the contact solve, "serial" or "jacobi" (:func:`contact_solve`).
+        full: per body None (its storage particles are the whole body) or, for a body simulated
+            with proxy particles (module docs "Proxy particles"), ``(x_full [n, 3] m, mass_full
+            [n] kg)``: its complete particle set (in the caller's order); the body's centre, mass
+            and inertia are those of the full set, the proxies' offsets are stretched
+            (:func:`moment_match`) so that their inertia is the same, and the contacts are found
+            at the full set's points.
     """
 
     def __init__(self, bodies: list, x: np.ndarray, mass: np.ndarray, dx: float, n_chunks: int, names: list,
-                 solve: str = "serial"):
+                 solve: str = "serial", full: list | None = None):
         if solve not in ("serial", "jacobi"):
             raise ValueError(f"rigid contact solve must be 'serial' or 'jacobi', not {solve!r}")
         self.solve = solve
         self.names = list(names)
         self.n_bodies = len(bodies)
         self.dx = float(dx)
+        full = list(full) if full is not None else [None] * len(bodies)
         rb_p, rb_b, r0s = [], [], []
         cs, I0inv, Ms = [], [], []
         self.I0 = []
+        self.full_r0 = []  # per body: None, or the full set's offsets [n, 3] (m, body frame), caller's order
+        self.full_mass = []
+        self.stretch = []  # per body: the proxies' largest stretch (1: no proxies)
+        ct_r0, ct_b, ct_x = [], [], []
         for b, idx in enumerate(bodies):
-            c, r0, I0, M = body_setup(x[idx], mass[idx], dx)
+            if full[b] is None:
+                c, r0, I0, M = body_setup(x[idx], mass[idx], dx)
+                self.full_r0.append(None)
+                self.full_mass.append(None)
+                self.stretch.append(1.0)
+            else:
+                xf, mf = full[b]
+                c, rf, I0f, Mf = body_setup(xf, mf, dx)
+                rp = np.asarray(x[idx], np.float64) - c
+                A = moment_match(rp, mass[idx], rf, mf)
+                if A is None:
+                    raise ValueError(f"rigid body {names[b]!r}: its proxy particles cannot carry its inertia "
+                                     f"(too few or flat: use the full set)")
+                r0 = rp @ A  # A symmetric
+                # the proxies' own inertia: the full set's up to rounding (moment_match), and
+                # exactly what the reduction's angular momentum of a rigid motion gives
+                _c, _r, I0, M = body_setup(c + r0, mass[idx], dx)
+                self.full_r0.append(rf)
+                self.full_mass.append(np.asarray(mf, np.float64))
+                self.stretch.append(float(np.linalg.eigvalsh(A).max()))
+                ct_r0.append(rf)
+                ct_b.append(np.full(len(rf), b, np.int32))
+                ct_x.append(np.asarray(xf, np.float64))
             rb_p.append(idx.astype(np.int32))
             rb_b.append(np.full(len(idx), b, np.int32))
             r0s.append(r0)
@@ -762,11 +859,29 @@ class RigidBodies:
             self.I0.append(I0)
             I0inv.append(np.linalg.inv(I0))
             Ms.append(M)
+            if full[b] is None and any(f is not None for f in full):
+                ct_r0.append(r0)
+                ct_b.append(np.full(len(idx), b, np.int32))
+                ct_x.append(np.asarray(x[idx], np.float64))
         order = np.concatenate(rb_p).argsort(kind="stable")  # storage order: cache-friendly and deterministic
         self.rb_p = _nd(np.concatenate(rb_p)[order], ti.i32)
         self.rb_b = _nd(np.concatenate(rb_b)[order], ti.i32)
         self.rb_r0 = _nd(np.concatenate(r0s)[order].astype(np.float32), K.vec3)
         self.n_particles = int(len(order))
+        self.proxies = any(f is not None for f in full)
+        if self.proxies:
+            # the contact candidates (reduce with what 1): the full sets' points of the bodies with
+            # proxies (and the particles of the others), sorted by cell as the storage is, so that
+            # the merge per bin finds its rows among the last few (module docs "contact")
+            cell = np.floor(np.concatenate(ct_x) / self.dx).astype(np.int64)
+            corder = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))  # row-major in (x, y, z), stable
+            self.ct_b = _nd(np.concatenate(ct_b)[corder], ti.i32)
+            self.ct_r0 = _nd(np.concatenate(ct_r0)[corder].astype(np.float32), K.vec3)
+            self.ct_p = _nd(np.zeros(len(corder), np.int32), ti.i32)  # not read by the contacts pass
+            self.n_points = int(len(corder))
+        else:
+            self.ct_p, self.ct_b, self.ct_r0 = self.rb_p, self.rb_b, self.rb_r0
+            self.n_points = self.n_particles
         self.mass = np.array(Ms)
         self.body_M = _nd(np.array(Ms), ti.f64)
         self.body_I0inv = _nd(np.array(I0inv), mat3d)
@@ -778,7 +893,7 @@ class RigidBodies:
         self.body_K = _nd(np.broadcast_to(np.eye(3), (self.n_bodies, 3, 3)).copy(), mat3d)
         T = max(1, int(n_chunks))
         self.part = ti.ndarray(ti.f64, (T, self.n_bodies, 7))
-        cap = CT_PER_PARTICLE * (self.n_particles // T + 1) + 8
+        cap = CT_PER_PARTICLE * (max(self.n_particles, self.n_points) // T + 1) + 8
         self.ct = ti.ndarray(ti.f32, (T, cap, CT_WIDTH))
         self.acc = ti.ndarray(ti.f32, (T, cap, 4))
         self.ct_count = ti.ndarray(ti.i32, T)
@@ -811,40 +926,51 @@ class RigidBodies:
             launch(*args, gbody, float(dt), bool(pre))
 
     def state(self) -> dict:
-        """Body state as numpy: centre [B, 3] (m), R [B, 3, 3], V [B, 3] (m/s), omega [B, 3] (rad/s)."""
+        """Body state as numpy: centre [B, 3] (m), R [B, 3, 3], V [B, 3] (m/s), omega [B, 3] (rad/s),
+        mass [B] (kg), K [B, 3, 3] (the particles' F is R K: scatter)."""
         return {"c": self.body_c.to_numpy(), "R": self.body_R.to_numpy(), "V": self.body_V.to_numpy(),
-                "omega": self.body_w.to_numpy(), "mass": self.mass.copy()}
+                "omega": self.body_w.to_numpy(), "mass": self.mass.copy(), "K": self.body_K.to_numpy()}
 
-    def fit_state(self, x: np.ndarray, v: np.ndarray, C: np.ndarray, F: np.ndarray, mass: np.ndarray) -> None:
+    def fit_state(self, x: np.ndarray, v: np.ndarray, C: np.ndarray, F: np.ndarray, mass: np.ndarray,
+                  full: list | None = None) -> None:
         """Body poses and motion that best explain a particle state (storage order, metres):
         centre of mass, rotation by the Kabsch fit of r0 onto x - c, and the momentum and
         angular momentum of the particles (APIC's affine part included, as in the reduction),
-        and K = R^T polar(mean F) so that the particles keep their F's rotation."""
+        and K = R^T polar(mean F) so that the particles keep their F's rotation.  A body with
+        proxies is fitted to its full set's state, ``full[b]`` = (x, v, C, F) of its full set
+        (rows as given to the constructor; metres)."""
         cs, Rs, Vs, ws, Ks = [], [], [], [], []
         rb_p = self.rb_p.to_numpy()
         rb_b = self.rb_b.to_numpy()
-        r0 = self.rb_r0.to_numpy().astype(np.float64)
+        r0_all = self.rb_r0.to_numpy().astype(np.float64)
         for b in range(self.n_bodies):
-            sel = rb_b == b
-            p = rb_p[sel]
-            m = mass[p].astype(np.float64)
+            if self.full_r0[b] is not None:
+                if full is None or full[b] is None:
+                    raise ValueError(f"rigid body {self.names[b]!r} has proxies: fit_state needs its full set's state")
+                xb, vb, Cb, Fb = (np.asarray(a, np.float64) for a in full[b])
+                m, r0 = self.full_mass[b], self.full_r0[b]
+            else:
+                sel = rb_b == b
+                p = rb_p[sel]
+                xb, vb, Cb, Fb = x[p], v[p], C[p], F[p]
+                m, r0 = mass[p].astype(np.float64), r0_all[sel]
             M = m.sum()
-            c = (m[:, None] * x[p]).sum(0) / M
-            H = (m[:, None, None] * (r0[sel][:, :, None] * (x[p] - c)[:, None, :])).sum(0)
+            c = (m[:, None] * xb).sum(0) / M
+            H = (m[:, None, None] * (r0[:, :, None] * (xb - c)[:, None, :])).sum(0)
             U, _, Vt = np.linalg.svd(H)
             Dm = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
             R = Vt.T @ Dm @ U.T
-            r = x[p] - c
-            Cp = C[p]
+            r = xb - c
+            Cp = Cb
             axial = np.stack([Cp[:, 2, 1] - Cp[:, 1, 2], Cp[:, 0, 2] - Cp[:, 2, 0], Cp[:, 1, 0] - Cp[:, 0, 1]], -1)
-            Vb = (m[:, None] * v[p]).sum(0) / M
-            Lb = (m[:, None] * np.cross(r, v[p])).sum(0) + (m[:, None] * self.dx ** 2 / 4.0 * axial).sum(0)
+            Vb = (m[:, None] * vb).sum(0) / M
+            Lb = (m[:, None] * np.cross(r, vb)).sum(0) + (m[:, None] * self.dx ** 2 / 4.0 * axial).sum(0)
             I = R @ self.I0[b] @ R.T
             cs.append(c)
             Rs.append(R)
             Vs.append(Vb)
             ws.append(np.linalg.solve(I, Lb))
-            Uf, _, Vf = np.linalg.svd((m[:, None, None] * F[p]).sum(0))
+            Uf, _, Vf = np.linalg.svd((m[:, None, None] * Fb).sum(0))
             RF = Uf @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Uf @ Vf))]) @ Vf
             Ks.append(R.T @ RF)
         self.body_c.from_numpy(np.array(cs))
@@ -852,6 +978,16 @@ class RigidBodies:
         self.body_R.from_numpy(np.array(Rs))
         self.body_V.from_numpy(np.array(Vs))
         self.body_w.from_numpy(np.array(ws))
+
+    def full_motion(self, b: int, st: dict | None = None) -> tuple:
+        """The full set of body ``b`` (proxies) on the body's rigid motion: x [n, 3] (m), v [n, 3]
+        (m/s, the bodies' stored velocity, staggered as the particles'), C [3, 3] = [omega]x and
+        F [3, 3] = R K, as :func:`build`'s scatter gives its particles (``st``: :meth:`state`)."""
+        st = self.state() if st is None else st
+        R, w = st["R"][b], st["omega"][b]
+        r = self.full_r0[b] @ R.T
+        Wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+        return st["c"][b] + r, st["V"][b] + np.cross(w, r), Wx, R @ st["K"][b]
 
     def copy_state(self) -> tuple:
         return tuple(a.to_numpy() for a in (self.body_c, self.body_R, self.body_V, self.body_w, self.body_K))

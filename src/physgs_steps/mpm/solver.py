@@ -78,18 +78,26 @@ class MPMSolver:
         run_length: coarsened P2G on one grid (CUDA): particles per thread, or ``"cell"``: one
             thread per stencil-base cell of the last sort.
         resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load).
+        rigid_particles_per_cell: simulate each free rigid body with proxy particles, about this
+            many per grid cell (rigid.py "Proxy particles"); None: with every particle.
     """
 
     def __init__(self, materials: Sequence[Material], *, n_grid: int = 32, domain_size: float = 1.0,
                  dynamics: Dynamics | None = None, backend: str = "cpu", labels: Sequence[int] | None = None,
                  sort_particles: bool = True, grid_mode: str = "auto", static: Sequence[StaticGeometry] = (),
-                 p2g: str = "auto", run_length: int = P2G.RUN_LENGTH, resort_every: int = P2G.RESORT_EVERY):
+                 p2g: str = "auto", run_length: int = P2G.RUN_LENGTH, resort_every: int = P2G.RESORT_EVERY,
+                 rigid_particles_per_cell: float | None = None):
         if not materials:
             raise ConfigError("materials", "at least one material is needed")
         if int(n_grid) < 8:
             raise ConfigError("sim.n_grid", f"must be >= 8, got {n_grid}")
         if not (domain_size > 0 and math.isfinite(domain_size)):
             raise ConfigError("sim.domain_size", f"must be a positive number of metres, got {domain_size}")
+        if rigid_particles_per_cell is not None and (isinstance(rigid_particles_per_cell, bool) or not (
+                isinstance(rigid_particles_per_cell, (int, float)) and 0 < rigid_particles_per_cell <= 64)):
+            raise ConfigError("sim.rigid_particles_per_cell",
+                              f"must be a number in (0, 64] or null (every particle), got {rigid_particles_per_cell!r}")
+        self.rigid_particles_per_cell = None if rigid_particles_per_cell is None else float(rigid_particles_per_cell)
         self.materials = list(materials)
         self.labels = list(labels) if labels is not None else list(range(len(self.materials)))
         self.n_grid = int(n_grid)
@@ -132,7 +140,9 @@ class MPMSolver:
 
         The particles of a fixed rigid instance do not enter the MPM: they become static
         geometry (a level-set collider, colliders.py) and keep their place in every state
-        returned.  Each free rigid instance becomes one rigid body (rigid.py).
+        returned.  Each free rigid instance becomes one rigid body (rigid.py); with
+        ``rigid_particles_per_cell`` it is simulated with proxy particles and its rows follow
+        its rigid motion in every state returned (rigid.py "Proxy particles").
 
         Args:
             x: [P, 3] positions in domain units (inside the domain walls).
@@ -163,7 +173,7 @@ class MPMSolver:
         velocity = _as_array(velocity, np.float64, (P, 3), "velocity")
         # fixed instances -> static geometry; the rest is simulated
         self._n_input = P
-        self._sim_rows = np.flatnonzero(~fixed)
+        self._vol_in, self._mat_in = vol, material  # the full sets of bodies with proxies (set_materials)
         self._static_rows = np.flatnonzero(fixed)
         self._x_static = x[fixed].astype(np.float32)
         self._static_fixed = [StaticGeometry(x[material == k], spacing=float(np.median(vol[material == k])) ** (1 / 3),
@@ -171,9 +181,15 @@ class MPMSolver:
                                              name=self.materials[k].name)
                               for k in fixed_k if np.any(material == k)]
         bound = self.dynamics.bind(x, material, names, self.labels, self.L)
-        sim = self._sim_rows
-        xs, ms = x[sim], material[sim]
-        self.bound = BoundDynamics(**{**bound.__dict__, "act_bits": bound.act_bits[sim]})
+        # free rigid bodies with proxy particles (rigid.py "Proxy particles"): their rows are not
+        # simulated, each proxy (row -1) stands for a group of them
+        sim_rows, pxs, pvol, pmat, pact, self._proxy_full = self._proxies(x, vol, material, fixed, bound.act_bits)
+        self._sim_rows = np.r_[sim_rows, np.full(len(pxs), -1, np.int64)]
+        xs = np.r_[x[sim_rows], pxs]
+        ms = np.r_[material[sim_rows], pmat]
+        self._mat_pre = ms
+        vs = np.r_[vol[sim_rows], pvol]
+        self.bound = BoundDynamics(**{**bound.__dict__, "act_bits": np.r_[bound.act_bits[sim_rows], pact]})
         perm = self._sort_order(xs) if self.sort_particles else np.arange(len(xs))
         Ps = len(xs)
         self.n_particles = Ps
@@ -182,7 +198,7 @@ class MPMSolver:
         self._perm = perm
         self._mat.from_numpy(ms[perm].astype(np.int32))
         self._act_bits.from_numpy(self.bound.act_bits[perm])
-        p_vol = vol[sim][perm] * self.L ** 3
+        p_vol = vs[perm] * self.L ** 3
         density = np.array([m.density for m in self.materials])[ms[perm]]
         self._p_vol.from_numpy(p_vol.astype(np.float32))
         p_mass = (p_vol * density).astype(np.float32)
@@ -203,7 +219,7 @@ class MPMSolver:
         self._k = K.build(spec)
         self._launch_substep = Launcher(self._k.substep)  # backend.Launcher: no per-call argument processing
         self._launch_substep_b = Launcher(self._k.substep)  # its second part with free rigid bodies (substep)
-        self._setup_rigid(xs[perm] * self.L, p_mass.astype(np.float64), ms[perm])
+        self._setup_rigid(xs[perm] * self.L, p_mass.astype(np.float64), ms[perm], self._full_sets(x, vol, material))
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
         self.set_state(x, velocity / self.L, np.zeros((P, 3, 3)), eye)
         if np.ptp(velocity, axis=0).max() > 0:  # a non-uniform field: C = its APIC velocity gradient
@@ -245,11 +261,67 @@ class MPMSolver:
         self.sort_generation += 1
         self._since_sort = 0
 
-    def _setup_rigid(self, xs: np.ndarray, mass: np.ndarray, mat_sorted: np.ndarray) -> None:
-        """One rigid body per free rigid instance (storage order arrays: xs [P, 3] m, mass [P] kg)."""
+    def _proxies(self, x: np.ndarray, vol: np.ndarray, material: np.ndarray, fixed: np.ndarray,
+                 act_bits: np.ndarray) -> tuple:
+        """The proxy particles of the free rigid bodies (rigid.py "Proxy particles"), with
+        ``rigid_particles_per_cell`` set: the particles of a body grouped by cubes of edge
+        dx / rigid_particles_per_cell^(1/3) (and action bits), one proxy per group at its
+        centre of volume (the body's density is uniform: its centre of mass) carrying its
+        volume.  A body keeps its full set where that would not make it smaller or its proxies
+        could not carry its inertia (rigid.moment_match).  Returns (rows simulated as
+        themselves [S] (input rows, ascending), proxy x [Q, 3] (domain units), vol [Q],
+        material [Q], action bits [Q], {material index: its full set's input rows})."""
+        keep = ~fixed
+        px, pv, pm, pa, full = [], [], [], [], {}
+        if self.rigid_particles_per_cell is not None:
+            edge = 1.0 / (self.n_grid * self.rigid_particles_per_cell ** (1.0 / 3.0))  # domain units
+            for k, m in enumerate(self.materials):
+                rows = np.flatnonzero(material == k)
+                if not (m.rigid and not m.fixed) or len(rows) < 8:
+                    continue
+                g = rigid_mod.proxy_groups(x[rows], act_bits[rows], edge)
+                n = int(g.max()) + 1
+                if n >= len(rows):
+                    continue
+                w = vol[rows]
+                W = np.bincount(g, w, n)
+                xg = np.stack([np.bincount(g, w * x[rows, d], n) for d in range(3)], 1) / W[:, None]
+                cf = (w[:, None] * x[rows]).sum(0) / w.sum()
+                if rigid_mod.moment_match(xg - cf, W, x[rows] - cf, w) is None:
+                    continue  # too small or flat for proxies: every particle
+                act = np.zeros(n, act_bits.dtype)
+                act[g] = act_bits[rows]
+                px.append(xg)
+                pv.append(W)
+                pm.append(np.full(n, k, np.int64))
+                pa.append(act)
+                full[k] = rows
+                keep[rows] = False
+        if not px:
+            return np.flatnonzero(keep), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), \
+                np.zeros(0, act_bits.dtype), {}
+        return np.flatnonzero(keep), np.concatenate(px), np.concatenate(pv), np.concatenate(pm), \
+            np.concatenate(pa), full
+
+    def _full_sets(self, x: np.ndarray, vol: np.ndarray, material: np.ndarray) -> dict:
+        """{material index: (x [n, 3] m, mass [n] kg)} of the full sets of the bodies simulated
+        with proxies (input arrays in domain units; rows ``_proxy_full``)."""
+        out = {}
+        for k, rows in self._proxy_full.items():
+            mass = (vol[rows] * self.L ** 3 * self.materials[k].density).astype(np.float32).astype(np.float64)
+            out[k] = (np.asarray(x[rows], np.float64) * self.L, mass)
+        return out
+
+    def _setup_rigid(self, xs: np.ndarray, mass: np.ndarray, mat_sorted: np.ndarray, full: dict | None = None) -> None:
+        """One rigid body per free rigid instance (storage order arrays: xs [P, 3] m, mass [P] kg;
+        ``full``: the full sets of the bodies with proxies, :meth:`_full_sets`)."""
+        full = full or {}
         free = [k for k, m in enumerate(self.materials) if m.rigid and not m.fixed and np.any(mat_sorted == k)]
         self._rigid_k = free
         self.rigid = None
+        # per body: the input rows of its full set where it runs with proxies (their state is the
+        # body's rigid motion: _proxy_rows), else None
+        self._body_rows = [self._proxy_full.get(k) for k in free]
         mbody = np.full(len(self.materials), -1, np.int32)
         mbody[free] = np.arange(len(free), dtype=np.int32)
         self._mbody = _ndarray_from(mbody, ti.i32)
@@ -267,9 +339,10 @@ class MPMSolver:
         self._gbody = _ndarray_from(gbody, ti.f64)
         if free:
             bodies = [np.flatnonzero(mat_sorted == k) for k in free]
-            chunks = rigid_mod.reduce_chunks(self.arch, self.n_chunks, sum(len(i) for i in bodies))
+            chunks = rigid_mod.reduce_chunks(self.arch, self.n_chunks, sum(len(i) for i in bodies) +
+                                             sum(len(full[k][1]) for k in free if k in full))
             self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, chunks, [self.materials[k].name for k in free],
-                                               rigid_mod.contact_solve(self.arch))
+                                               rigid_mod.contact_solve(self.arch), full=[full.get(k) for k in free])
             b = self.bound
             self._kr = rigid_mod.build(b.counts, b.boundary, bool(self._static_geoms), self.private_grid)
             self._launch_reduce, self._launch_scatter = Launcher(self._kr.reduce), Launcher(self._kr.scatter)
@@ -298,7 +371,8 @@ class MPMSolver:
             if self.rigid is not None and not np.allclose(rho, old_rho):
                 st = self.get_state()
                 x0 = self.x.to_numpy().astype(np.float64)
-                self._setup_rigid(x0, self._p_mass.to_numpy().astype(np.float64), mat)
+                self._setup_rigid(x0, self._p_mass.to_numpy().astype(np.float64), mat,
+                                  self._full_sets(st["x"], self._vol_in, self._mat_in))
                 self.set_state(st["x"], st["v"], st["C"], st["F"])
             self._update_stress()
 
@@ -376,57 +450,94 @@ class MPMSolver:
         stresses.  The next substep staggers the velocities by half its dt (module docstring).
         ``ep`` [P]: accumulated inelastic strain of tearing materials (default 0, intact).
         Rows of fixed instances are ignored (static geometry stays where it was loaded); each
-        rigid body takes the pose and motion that best fit its particles' state."""
+        rigid body takes the pose and motion that best fit its particles' state (all its rows,
+        where it runs with proxies; the proxies are then put on that motion)."""
         self._require_particles()
         P = self._n_input
         x = _as_array(x, np.float64, (P, 3), "x")
         v = _as_array(v, np.float64, (P, 3), "v")
         C = _as_array(C, np.float64, (P, 3, 3), "C")
         F = _as_array(F, np.float64, (P, 3, 3), "F")
-        p = self._sim_rows[self._perm]
-        self.x.from_numpy((x[p] * self.L).astype(np.float32))
-        self.v.from_numpy((v[p] * self.L).astype(np.float32))
-        self.C.from_numpy(C[p].astype(np.float32))
-        self.F.from_numpy(F[p].astype(np.float32))
+        p = self._sim_rows[self._perm]  # -1: a proxy (its state follows from its body's)
+        q = np.maximum(p, 0)
+        self.x.from_numpy((x[q] * self.L).astype(np.float32))
+        self.v.from_numpy((v[q] * self.L).astype(np.float32))
+        self.C.from_numpy(C[q].astype(np.float32))
+        self.F.from_numpy(F[q].astype(np.float32))
         ep = np.zeros(P) if ep is None else _as_array(ep, np.float64, (P,), "ep")
-        self.ep.from_numpy(ep[p].astype(np.float32))
+        self.ep.from_numpy(np.where(p >= 0, ep[q], 0.0).astype(np.float32))
         self._stagger = 0.0
         if self.rigid is not None:
-            self.rigid.fit_state(x[p] * self.L, v[p] * self.L, C[p], F[p], self._p_mass.to_numpy())
+            full = [None if r is None else (x[r] * self.L, v[r] * self.L, C[r], F[r]) for r in self._body_rows]
+            self.rigid.fit_state(x[q] * self.L, v[q] * self.L, C[q], F[q], self._p_mass.to_numpy(), full)
+            if self.rigid.proxies:  # the proxies (and every rigid particle) onto the fitted motion
+                rb = self.rigid
+                self._launch_scatter(self.x, self.v, self.C, self.F, self.tau, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c,
+                                     rb.body_R, rb.body_V, rb.body_w, rb.body_K)
         self._update_stress()
 
-    def _full(self, a: np.ndarray, static_value) -> np.ndarray:
+    def _full(self, a: np.ndarray, static_value, proxied=None) -> np.ndarray:
         """Storage-order rows ``a`` [P_sim, ...] -> input order [P, ...] with the static rows
-        (fixed instances) set to ``static_value`` (an array [P_static, ...] or a scalar)."""
+        (fixed instances) set to ``static_value`` (an array [P_static, ...] or a scalar) and
+        the rows of bodies simulated with proxies to ``proxied`` ([(rows, values)])."""
         out = np.empty((self._n_input,) + a.shape[1:], a.dtype)
-        out[self._sim_rows[self._perm]] = a
+        rows = self._sim_rows[self._perm]
+        real = rows >= 0
+        out[rows[real]] = a[real]
         out[self._static_rows] = static_value
+        for r, val in proxied or ():
+            out[r] = val
         return out
+
+    def _proxied_state(self) -> list:
+        """Per body with proxies: (its full set's input rows, x [n, 3] m, v [n, 3] m/s (staggered
+        as stored), C [3, 3], F [3, 3], body index): the body's rigid motion
+        (rigid.RigidBodies.full_motion)."""
+        if self.rigid is None or not self.rigid.proxies:
+            return []
+        st = self.rigid.state()
+        return [(rows, *self.rigid.full_motion(b, st), b) for b, rows in enumerate(self._body_rows) if rows is not None]
 
     def get_state(self) -> dict:
         """{"x", "v", "C", "F", "ep"}: float32 arrays in domain units, rows in input order; v is
         the velocity at the state's time (the stored half-step velocity plus dt/2 g); ep the
         accumulated inelastic strain of tearing materials (0 elsewhere).  The rows of fixed
-        instances: their initial position, v = 0, C = 0, F = I, ep = 0."""
+        instances: their initial position, v = 0, C = 0, F = I, ep = 0.  The rows of a body
+        simulated with proxies: its rigid motion, x = c + R r0, v = V + omega x r, C = [omega]x,
+        F = R K, ep = 0 (as rigid.py's scatter sets its particles)."""
         self._require_particles()
         inv = np.float32(1.0 / self.L)
         v = self.v.to_numpy()
+        shift = 0.5 * self._stagger * self.bound.gravity.astype(np.float64)
         if self._stagger != 0.0:
-            v = v + (0.5 * self._stagger * self.bound.gravity).astype(np.float32)
-        return {"x": self._full(self.x.to_numpy() * inv, self._x_static),
-                "v": self._full(v * inv, 0.0),
-                "C": self._full(self.C.to_numpy(), 0.0),
-                "F": self._full(self.F.to_numpy(), np.eye(3, dtype=np.float32)),
-                "ep": self._full(self.ep.to_numpy(), 0.0)}
+            v = v + shift.astype(np.float32)
+        px = self._proxied_state()
+        return {"x": self._full(self.x.to_numpy() * inv, self._x_static, [(r, x / self.L) for r, x, _v, _C, _F, _b in px]),
+                "v": self._full(v * inv, 0.0, [(r, (v_ + shift) / self.L) for r, _x, v_, _C, _F, _b in px]),
+                "C": self._full(self.C.to_numpy(), 0.0, [(r, C_) for r, _x, _v, C_, _F, _b in px]),
+                "F": self._full(self.F.to_numpy(), np.eye(3, dtype=np.float32),
+                                [(r, F_) for r, _x, _v, _C, F_, _b in px]),
+                "ep": self._full(self.ep.to_numpy(), 0.0, [(r, 0.0) for r, *_ in px])}
 
     def get_stress(self) -> np.ndarray:
         """[P, 3, 3] Kirchhoff stress (Pa) of the current F, rows in input order."""
-        return self._full(self.tau.to_numpy(), 0.0)
+        return self._full(self.tau.to_numpy(), 0.0, [(r, 0.0) for r in self._body_rows if r is not None])
 
     @property
     def n_input(self) -> int:
         """Rows of the particle set given to set_particles (simulated + static)."""
         return self._n_input
+
+    def proxy_count(self, k: int) -> int | None:
+        """Proxy particles simulating material ``k``'s rigid body (rigid.py "Proxy particles"), or
+        None where every particle of it is simulated."""
+        if k not in self._proxy_full:
+            return None
+        return int(np.count_nonzero((self._sim_rows < 0) & (np.r_[self._mat_pre] == k)))
+
+    def proxy_total(self) -> int:
+        """Proxy particles of all rigid bodies (rigid.py "Proxy particles")."""
+        return int(np.count_nonzero(self._sim_rows < 0))
 
     def roles(self) -> list[str]:
         """Per material: ``deformable``, ``rigid`` (free rigid body) or ``fixed`` (static geometry)."""
@@ -502,7 +613,9 @@ class MPMSolver:
             rargs = (self.v, self.C, self._p_mass, rb.rb_p, rb.rb_b, rb.rb_r0, rb.body_c, rb.body_R, rb.part, rb.ct,
                      rb.ct_count, self._dyn, self._lvl_phi, self._lvl_id, self._lvl_rows, float(self.time),
                      float(self.dx), float(b.wall_margin), self.n_grid)
-            self._launch_contacts(*rargs, 1)
+            # the contacts at the bodies' points: their particles, or their full sets where they
+            # run with proxies (rigid.py "Proxy particles")
+            self._launch_contacts(*rargs[:3], rb.ct_p, rb.ct_b, rb.ct_r0, *rargs[6:], 1)
             self._launch_substep(*args, 1)
             rb.advance(kr, dt, self._gbody, pre=True)
             self._launch_substep_b(*args, 2)
@@ -523,6 +636,13 @@ class MPMSolver:
         self._stats.from_numpy(init)
         K.frame_stats(self.x, self.v, self.F, self._mat, self._stats, float(self.dx), self.n_grid)
         a = self._stats.to_numpy().astype(np.float64)
+        for _rows, x, v, _C, _F, b in self._proxied_state():  # bodies with proxies: their full sets too
+            k = self._rigid_k[b]
+            bad = ~(np.isfinite(x).all(1) & np.isfinite(v).all(1))
+            g = x[~bad] / self.dx
+            a[k, 0] += bad.sum()
+            a[k, 3] = max(a[k, 3], float(np.linalg.norm(v[~bad], axis=1).max(initial=0.0)))
+            a[k, 4] += ((g.min(1) < 0.5) | (g.max(1) >= self.n_grid - 1.5)).sum()
         empty = a[:, 1] > a[:, 2]  # no simulated particle (fixed instances): neutral values
         a[empty, 1:3] = 1.0
         out = {c: a[:, i] for i, c in enumerate(STAT_COLUMNS)}
@@ -581,17 +701,29 @@ class MPMSolver:
                 self._gather_gen != self.sort_generation:
             self._gather_gen = self.sort_generation
             storage = np.full(self._n_input, -1, np.int64)
-            storage[self._sim_rows[self._perm]] = np.arange(self.n_particles)
+            slot_rows = self._sim_rows[self._perm]
+            real = slot_rows >= 0
+            storage[slot_rows[real]] = np.flatnonzero(real)
             st = storage[rows]
             sim = np.flatnonzero(st >= 0)
             static_pos = np.full(self._n_input, -1, np.int64)
             static_pos[self._static_rows] = np.arange(len(self._static_rows))
-            stat = np.flatnonzero(st < 0)
+            stat = np.flatnonzero(static_pos[rows] >= 0)
+            # rows of bodies with proxies: (body, the positions in ``rows``, the rows' index in its full set)
+            proxied = []
+            for b, brows in enumerate(self._body_rows):
+                if brows is None:
+                    continue
+                at = np.full(self._n_input, -1, np.int64)
+                at[brows] = np.arange(len(brows))
+                sel = np.flatnonzero(at[rows] >= 0)
+                if len(sel):
+                    proxied.append((b, sel, at[rows[sel]]))
             idx = _ndarray_from(st[sim].astype(np.int64) if len(sim) else np.zeros(1, np.int64), ti.i64)
             n = max(len(sim), 1)
             self._gather_cache = (rows, idx, ti.ndarray(K.vec3, n), ti.ndarray(K.mat3, n), sim, stat,
-                                  static_pos[rows[stat]])
-        _, idx, ox, oF, sim, stat, spos = self._gather_cache
+                                  static_pos[rows[stat]], proxied)
+        _, idx, ox, oF, sim, stat, spos, proxied = self._gather_cache
         out_x = np.empty((len(rows), 3), np.float32)
         out_F = np.empty((len(rows), 3, 3), np.float32)
         if len(sim):
@@ -600,6 +732,12 @@ class MPMSolver:
             out_F[sim] = oF.to_numpy()[: len(sim)]
         out_x[stat] = self._x_static[spos]
         out_F[stat] = np.eye(3, dtype=np.float32)
+        if proxied:
+            bst = self.rigid.state()
+            for b, sel, k in proxied:
+                R = bst["R"][b]
+                out_x[sel] = (bst["c"][b] + self.rigid.full_r0[b][k] @ R.T) / self.L
+                out_F[sel] = R @ bst["K"][b]
         return out_x, out_F
 
     def device_bytes(self) -> int:
