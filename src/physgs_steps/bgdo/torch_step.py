@@ -585,8 +585,10 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     gv = grid_mv / torch.where(has_mass, grid_m, torch.ones_like(grid_m))[:, None]
     gv = torch.where(has_mass[:, None], gv + dt * g, torch.zeros_like(gv))
     field = None
+    covered = None
     if body is not None and bool((body >= 0).any()):
-        gv, field = _rigid_grid(gv, grid_m, uniq, inv.reshape(P, 27), weight, mom, p_mass, body, cover, G, dx, dt, g)
+        gv, field, covered = _rigid_grid(gv, grid_m, uniq, inv.reshape(P, 27), weight, mom, p_mass, body, cover, G,
+                                         dx, dt, g)
     # a wall acts on the nodes of (deformable) particles that touch it (colliders.py)
     phi_p = torch.stack([sgn * (x[:, a] - pos) for a, sgn, pos in _wall_planes(G, dx, grid)], -1).min(-1).values
     touch = phi_p < TOUCH * dx
@@ -595,7 +597,7 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     engaged = torch.zeros(M, dtype=torch.bool, device=dev)
     if bool(touch.any()):
         engaged[inv.reshape(P, 27)[touch].reshape(-1)] = True
-    gv_b = _walls(gv, grid_m, uniq, G, dx, grid, engaged)
+    gv_b = _walls(gv, grid_m, uniq, G, dx, grid, engaged, covered)
     gvp = gv_b[inv].reshape(P, 27, 3)
     if rigid is not None and bool(rigid.any()):
         gvp = torch.where(rigid[:, None, None], (gv if field is None else field)[inv].reshape(P, 27, 3), gvp)
@@ -621,7 +623,7 @@ def _rigid_grid(gv, grid_m, uniq, inv, weight, mom, p_mass, body, cover, G: int,
     inv  # [P, 27] node of each stencil entry, weight  # [P, 27], mom  # [P, 27, 3] the momenta
     transferred, body  # [P] long (-1: deformable), cover  # [B] kg.
     returns gv  # [M, 3] (covered nodes: the body's field; fringe nodes: the soft material's
-    own velocity) and field  # [M, 3] (the owning body's field; gv elsewhere)."""
+    own velocity), field  # [M, 3] (the owning body's field; gv elsewhere) and covered  # [M] bool."""
     r = body >= 0
     idx = inv[r].reshape(-1)
     M = gv.shape[0]
@@ -655,7 +657,7 @@ def _rigid_grid(gv, grid_m, uniq, inv, weight, mom, p_mass, body, cover, G: int,
     own_soft = (grid_m[:, None] * gv - rm[:, None] * rv) / torch.where(soft > 0, soft, torch.ones_like(soft))[:, None]
     fringe_v = torch.where((soft > FRINGE_SOFT * grid_m)[:, None], own_soft, field)
     gv = torch.where(covered[:, None], field, torch.where((own > 0)[:, None], fringe_v, gv))
-    return gv, field
+    return gv, field, covered
 
 
 def _wall_planes(G: int, dx: float, grid: GridSpec):
@@ -666,7 +668,7 @@ def _wall_planes(G: int, dx: float, grid: GridSpec):
 
 
 def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: float, grid: GridSpec,
-           engaged: torch.Tensor) -> torch.Tensor:
+           engaged: torch.Tensor, covered: torch.Tensor | None = None) -> torch.Tensor:
     """Domain walls on the grid velocities with the ghost treatment of
     physgs_steps.mpm.colliders (linear extrapolation from the mirror point's velocity).
     gv  # [M, 3] velocities before the walls, gm  # [M] masses, uniq  # [M] node keys,
@@ -676,7 +678,8 @@ def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: f
     xn = idx.to(dtp) * dx
     has = gm > 0
     dense_v = gv.new_zeros((G * G * G, 3)).index_copy(0, uniq, gv)
-    dense_m = gv.new_zeros((G * G * G,)).index_copy(0, uniq, gm)
+    # the mirror leaves out the nodes a free rigid body covers (kernels.py collider_funcs.ghost)
+    dense_m = gv.new_zeros((G * G * G,)).index_copy(0, uniq, gm if covered is None else torch.where(covered, 0.0 * gm, gm))
     sticky = grid.boundary == "sticky"
     out = gv
     corners = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], device=dev)  # [8, 3]
@@ -713,7 +716,10 @@ def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: f
         else:
             ut = vm - un[:, None] * n
             approach = ut + q * un[:, None] * n  # no friction on the walls
-            ghost = torch.where((un < 0)[:, None], approach, vm)
+            # leaving: the mirror's normal velocity, but no faster than the node's own (before any
+            # wall): a ghost node does not pull material off the wall that still presses on it
+            leave = ut + torch.minimum(un, torch.clamp(gv @ n, min=0.0))[:, None] * n
+            ghost = torch.where((un < 0)[:, None], approach, leave)
             # in front: the normal part pushed up to the line through 0 and the mirror's (pushes only)
             target = q[:, 0] * torch.clamp(un, max=0.0)
             front = out + torch.clamp(target - un_own, min=0.0)[:, None] * n

@@ -47,7 +47,11 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
   band, so no node reads a value that the boundary changes): relative velocity
   ``u = v_m - v_c``, ratio ``q = phi / d``.  Behind the surface (``phi < 0``, ghost nodes):
   sticky ``v = v_c + q u``; slip: normal part ``q u_n``, tangential part ``u_t``; separate: as
-  slip when ``u_n < 0`` (approaching), else ``v = v_m`` (leaving is free); on a rough surface
+  slip when ``u_n < 0`` (approaching), else ``v = v_m`` (leaving is free) with its normal part
+  no faster than the node's own (before any boundary): material that still presses on the
+  surface is not pulled off it by a mirror two cells away (a layer thinner than that under a
+  rising body: the surface did work on it); the mirror samples leave out the nodes a free
+  rigid body covers (its field is not the material touching the surface); on a rough surface
   (friction mu > 0) the node keeps instead its own tangential velocity less mu times its own
   push (the change of its normal velocity), as a front node does: the ghost row carries a
   large part of the surface's reaction (the lowest layers' stress reaches it through the
