@@ -183,8 +183,8 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
                     gv = gv + (target - gv @ nrm) * nrm
             elif vm @ nrm < 0:
                 gv = vm - (vm @ nrm) * nrm + q * (vm @ nrm) * nrm
-            else:
-                gv = vm
+            else:  # leaving: the mirror's normal velocity, no faster than the node's own before any wall
+                gv = vm - (vm @ nrm) * nrm + min(vm @ nrm, max(pre[node] @ nrm, 0.0)) * nrm
         grid_v[node] = gv
     out = {k: np.zeros_like(a) for k, a in (("x", x), ("v", v), ("C", Cm), ("F", F))}
     for p in range(P):
