@@ -39,6 +39,8 @@ import sys
 import time
 from pathlib import Path
 
+from .worker import _messages as _lines  # newline-delimited JSON messages, as the worker reads them
+
 DEFAULT_IDLE_SECONDS = 600.0
 START_TIMEOUT_S = 60.0
 PROTOCOL = 1
@@ -80,19 +82,6 @@ def _send(conn: socket.socket, msg: dict, fds: list[int] | None = None) -> None:
         socket.send_fds(conn, [data], fds)
     else:
         conn.sendall(data)
-
-
-def _lines(conn: socket.socket):
-    buf = b""
-    while True:
-        chunk = conn.recv(65536)
-        if not chunk:
-            return
-        buf += chunk
-        while b"\n" in buf:
-            line, buf = buf.split(b"\n", 1)
-            if line.strip():
-                yield json.loads(line)
 
 
 # ============================================================================ server
