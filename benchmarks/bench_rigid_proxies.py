@@ -18,7 +18,6 @@ smallest distances from a deformable particle to the body's particles (mean, cel
 end, smaller = sunk in further.
 """
 import argparse
-import glob
 import logging
 import os
 import sys
@@ -37,21 +36,19 @@ if a.threads:
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from physgs_steps import config as C, simulate as S  # noqa: E402
+from physgs_steps import simulate as S  # noqa: E402
+from physgs_steps.errors import InputError  # noqa: E402
 from physgs_steps.mpm.rest import RestPolicy  # noqa: E402
 from physgs_steps.mpm.runner import run_frames  # noqa: E402
 from physgs_steps.mpm.stability import Thresholds  # noqa: E402
 from physgs_steps.mpm.timestep import TimeStepper  # noqa: E402
 
-cfg = C.load_config()
-scene = C.load_scene(cfg, a.scene)
-sim = C.effective_section(cfg, scene, "sim")
-parts_h5 = sorted(glob.glob(f"{a.run_dir}/results/{a.scene}/fill/*/particles.h5"))
-params = sorted(glob.glob(f"{a.run_dir}/results/{a.scene}/sim/*/it*/params.json"))
-if not parts_h5 or not params:
-    sys.exit(f"no particles.h5 or params.json of {a.scene} under {a.run_dir}/results (run the pipeline there first)")
-parts = S.load_particles(parts_h5[-1])
-par, mats, labels = S.load_materials(params[-1], parts["label"])
+try:
+    run = S.load_run(a.run_dir, a.scene)
+except InputError as e:
+    sys.exit(str(e))
+sim, scene, parts = run["sim"], run["scene"], run["parts"]
+par, mats, labels = run["params"], run["materials"], run["labels"]
 log = logging.getLogger("bench")
 runs = {}
 for ppc in a.ppc:

@@ -17,7 +17,6 @@ body), one thread, base b6562d3 / branch cpu_substep in one session: kernels 7.8
 substep, wall 9.9 / 7.0 ms (README "Measured", CPU substep).
 """
 import argparse
-import glob
 import logging
 import os
 import sys
@@ -38,17 +37,15 @@ if a.profile:
 
 import taichi as ti  # noqa: E402
 
-from physgs_steps import config as C, simulate as S  # noqa: E402
+from physgs_steps import simulate as S  # noqa: E402
+from physgs_steps.errors import InputError  # noqa: E402
 
-cfg = C.load_config()
-scene = C.load_scene(cfg, a.scene)
-sim = C.effective_section(cfg, scene, "sim")
-parts_h5 = sorted(glob.glob(f"{a.run_dir}/results/{a.scene}/fill/*/particles.h5"))
-params = sorted(glob.glob(f"{a.run_dir}/results/{a.scene}/sim/*/it*/params.json"))
-if not parts_h5 or not params:
-    sys.exit(f"no particles.h5 or params.json of {a.scene} under {a.run_dir}/results (run the pipeline there first)")
-parts = S.load_particles(parts_h5[-1])
-par, mats, labels = S.load_materials(params[-1], parts["label"])
+try:
+    run = S.load_run(a.run_dir, a.scene)
+except InputError as e:
+    sys.exit(str(e))
+sim, scene, parts = run["sim"], run["scene"], run["parts"]
+par, mats, labels = run["params"], run["materials"], run["labels"]
 sol = S.build_solver(parts, mats, labels, {"sim": sim, "scene": scene}, logging.getLogger("bench"), par)
 dt = 4.12e-4
 for _ in range(400):

@@ -184,3 +184,29 @@ def test_bad_inputs_name_the_file(tmp_path):
         f["x"][...] = x
     with pytest.raises(InputError, match=r"particles.h5.*non-finite"):
         simulate.run_forward(inputs, {"keyframes": str(tmp_path / "k.h5")}, _cfg(), LOG)
+
+
+def test_load_run_takes_the_highest_bgdo_iteration_and_names_a_missing_run(tmp_path, monkeypatch):
+    """simulate.load_run (the micro-benchmarks' loader of a finished run): BGDO's iteration 10
+    comes after iteration 2 (numeric, not string order), and a run without outputs is an
+    InputError naming the folder."""
+    import shutil
+    from pathlib import Path
+
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])  # config/ of the repository
+    with pytest.raises(InputError, match=r"results/bear.*run the pipeline"):
+        simulate.load_run(tmp_path, "bear")
+    src = _scene(tmp_path)
+    res = tmp_path / "results" / "bear"
+    (res / "fill" / "f1").mkdir(parents=True)
+    shutil.copy(src["particles"], res / "fill" / "f1" / "particles.h5")
+    for it, E in (("it2-aa", 7.0e4), ("it10-bb", 9.0e4), ("it0", 5.0e4)):
+        d = res / "sim" / "mpm-x" / it
+        d.mkdir(parents=True)
+        p = json.loads(open(src["params"]).read())
+        p["instances"][0]["E"] = E
+        write_json(d / "params.json", p)
+    run = simulate.load_run(tmp_path, "bear")
+    assert run["materials"][0].E == 9.0e4
+    assert run["labels"] == [0, 1] and len(run["parts"]["x"]) == 1800
+    assert run["sim"]["n_grid"] > 0 and "dynamics" in run["scene"]

@@ -113,6 +113,33 @@ def load_materials(path: str | Path, labels_present: np.ndarray) -> tuple[dict, 
     return params, [by_label[l] for l in labels], labels
 
 
+def load_run(run_dir: str | Path, scene_name: str) -> dict:
+    """The inputs of a finished pipeline run's final simulation, for tools that rebuild its solver
+    (benchmarks/bench_scene_substep.py, bench_rigid_proxies.py): ``run_dir`` is where snakemake
+    ran (``results/<scene>/fill/*/particles.h5`` and ``results/<scene>/sim/*/it<k>*/params.json``
+    below it), the config is ``config/`` of the working directory.  Returns ``sim`` and
+    ``scene`` (the effective sections), ``parts``, ``params``, ``materials`` and ``labels``, from
+    the last fill and the highest BGDO iteration's params.  Raises InputError when the run has
+    none of them."""
+    import re
+
+    from . import config as C
+
+    cfg = C.load_config()
+    scene = C.load_scene(cfg, scene_name)
+    res = Path(run_dir) / "results" / scene_name
+    fills = sorted(res.glob("fill/*/particles.h5"))
+    its = sorted(res.glob("sim/*/it*/params.json"),
+                 key=lambda p: (int(re.match(r"it(\d+)", p.parent.name).group(1)), str(p)))
+    if not fills or not its:
+        raise InputError(res, "no fill/*/particles.h5 or sim/*/it*/params.json: run the pipeline for "
+                              f"{scene_name!r} in {run_dir} first")
+    parts = load_particles(fills[-1])
+    params, materials, labels = load_materials(its[-1], parts["label"])
+    return dict(sim=C.effective_section(cfg, scene, "sim"), scene=scene, parts=parts, params=params,
+                materials=materials, labels=labels)
+
+
 def _backend(cfg: dict) -> str:
     b = cfg["sim"].get("backend", "auto")
     if b == "auto" and cfg.get("device") in ("cpu", "cuda"):
