@@ -664,6 +664,11 @@ def build(spec: Spec) -> SimpleNamespace:
                 box[0, 3 + a] = hi
                 box[2, a] = ti.min(lo, box[1, a])
                 box[2, 3 + a] = ti.max(hi, box[1, 3 + a])
+        # the node passes' run count, read from the box once per launch, before the first loop: a
+        # loop bound computed between two loops costs Taichi a serial task of its own (on CUDA
+        # one more launch a substep)
+        n_nodes = _box_runs(box, 0)
+        if ti.static(part != 2):
             for qc in range(n_chunks * _box_runs(box, 2)):  # per chunk, the union box's columns (CUDA: nodes)
                 c = qc // _box_runs(box, 2)
                 i, j, k0, k1 = _box_run(box, 2, qc % _box_runs(box, 2))
@@ -720,7 +725,7 @@ def build(spec: Spec) -> SimpleNamespace:
                         node = base + offset
                         grid_o[node[0], node[1], node[2]] += (w[i][0] * w[j][1] * w[k][2]) * (mv + mC @ dpos)
             # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
-            for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
+            for qc in range(n_nodes):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
                 i, j, k0, k1 = _box_run(box, 0, qc)
                 for k in range(k0, k1):
                     m = grid_m[0, i, j, k]
@@ -837,7 +842,7 @@ def build(spec: Spec) -> SimpleNamespace:
             if ti.static(rigid_cid >= 0):
                 # covered nodes take their body's field (after the contact solve on the grid when
                 # the substep runs in two parts), fringe nodes the soft material's own velocity
-                for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes)
+                for qc in range(n_nodes):  # the box's (x, y) columns, z inside (CUDA: nodes)
                     i, j, k0, k1 = _box_run(box, 0, qc)
                     for k in range(k0, k1):
                         o = grid_r[0, i, j, k]
@@ -853,7 +858,7 @@ def build(spec: Spec) -> SimpleNamespace:
                                     out = (m * grid_v[0, i, j, k] - rm * grid_rv[0, i, j, k]) / (m - rm)
                                 grid_v[0, i, j, k] = out
             # part 2: boundaries (colliders.py), reading part 1's field, into grid_b
-            for qc in range(_box_runs(box, 0)):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
+            for qc in range(n_nodes):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
                 i, j, k0, k1 = _box_run(box, 0, qc)
                 for k in range(k0, k1):
                     gv = grid_v[0, i, j, k]
@@ -880,7 +885,7 @@ def build(spec: Spec) -> SimpleNamespace:
                                                            rigid_cid >= 0)
                     grid_b[i, j, k] = gv
             # G2P, F update, return map, stress of the new F; boundaries on deformable particles
-            for p in x:
+            for p in range(P):
                 xp = x[p]
                 m = mat[p]
                 rigid = _is_rigid(m, mcombo)

@@ -120,15 +120,15 @@ def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thres
                 continue
             log.info("frame %d t=%.2fs: resuming substeps after rest (the dynamics' schedule changes at %.3g s)",
                      k, (k - 1) * frame_dt, tracker.events[-1]["until_time"])
-        for s in range(plan.n):
-            if k == 1 and s == 0:
-                t0 = _time.perf_counter()
-                solver.substep(plan.dt)
-                _sync()
-                res.first_substep_seconds = _time.perf_counter() - t0
-                t_start += res.first_substep_seconds
-            else:
-                solver.substep(plan.dt)
+        n_sub = plan.n
+        if k == 1 and n_sub > 0:
+            t0 = _time.perf_counter()
+            solver.substep(plan.dt)
+            _sync()
+            res.first_substep_seconds = _time.perf_counter() - t0
+            t_start += res.first_substep_seconds
+            n_sub -= 1
+        solver.substeps(n_sub, plan.dt)  # batched launches (MPMSolver.substeps)
         solver.time = k * frame_dt
         res.substeps.append(plan.n)
         res.dts.append(plan.dt)

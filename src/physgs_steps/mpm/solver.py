@@ -33,6 +33,7 @@ at 1 turn/s on a 16^3 grid kept 56% of it).
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 from typing import Sequence
@@ -49,6 +50,8 @@ from . import rigid as rigid_mod
 from .colliders import StaticGeometry
 from .dynamics import BoundDynamics, Dynamics
 from .materials import RIGID_KEY, Material
+
+_log = logging.getLogger("physgs.mpm")
 
 MAX_CHUNKS = 16  # CPU: at most this many private grids
 AFFINE_ITERATIONS = 16  # APIC round trips that set the initial C (the error falls ~10x per 4; 1e-4 after 16)
@@ -130,6 +133,7 @@ class MPMSolver:
         self.n_particles = 0
         self.bound: BoundDynamics | None = None
         self._k = None
+        self._batches = None
         self._kc = K.build_constitutive(self.combos)
         self._upload_materials()
 
@@ -218,6 +222,7 @@ class MPMSolver:
                       run=run)
         self._k = K.build(spec)
         self._launch_substep = Launcher(self._k.substep)  # backend.Launcher: no per-call argument processing
+        self._batches = None  # substeps(): ti.graph batches of the substep kernel (_Batches), built on first use
         self._launch_substep_b = Launcher(self._k.substep)  # its second part with free rigid bodies (substep)
         self._setup_rigid(xs[perm] * self.L, p_mass.astype(np.float64), ms[perm], self._full_sets(x, vol, material))
         eye = np.broadcast_to(np.eye(3), (P, 3, 3))
@@ -584,24 +589,71 @@ class MPMSolver:
             raise RuntimeError("call set_particles() first")
 
     # ------------------------------------------------------------------ stepping
-    def substep(self, dt: float) -> None:
-        """Advance by one substep of ``dt`` seconds (CONTRACTS.md step plus scene dynamics)."""
+    def _begin_substep(self, dt: float) -> float:
+        """What comes before a substep of ``dt``: the leapfrog stagger (when dt changed) and the
+        device re-sort (when due); returns the damping factor of ``dt``."""
         self._require_particles()
         b = self.bound
         if dt != self._stagger:  # leapfrog: stagger the velocities by half of this dt
             shift = 0.5 * (self._stagger - dt) * b.gravity.astype(np.float64)
             K.add_velocity(self.v, float(shift[0]), float(shift[1]), float(shift[2]))
             self._stagger = dt
-        damp = math.exp(-b.damping * dt) if b.damping > 0 else 1.0
         if self._sorter is not None and self.resort_every > 0 and self._since_sort >= self.resort_every:
             self.resort()
-        self._since_sort += 1
-        args = (self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
+        return math.exp(-b.damping * dt) if b.damping > 0 else 1.0
+
+    def _substep_args(self, dt: float, damp: float) -> tuple:
+        """The substep kernel's arguments but ``part`` (kernels.build's ``substep``)."""
+        b = self.bound
+        return (self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
                 self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_o, self.grid_r,
                 self.grid_rm, self.grid_rv, self._mbody, self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
                 self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
                 float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]),
                 float(damp), self._cell_start)
+
+    def substeps(self, n: int, dt: float) -> None:
+        """Advance by ``n`` substeps of ``dt`` seconds: the same as ``n`` calls of :meth:`substep`
+        (the same kernel with the same arguments, so the same state bit for bit on the CPU).
+
+        Without free rigid bodies the substeps go to Taichi in batches, each one call of a
+        ``ti.graph`` that holds 1, 2, 4, ... 32 launches of the substep kernel (:class:`_Batches`):
+        Taichi's C++ then sets the arguments of each launch, instead of Python (about 40
+        arguments a launch; the per-launch host time that leaves the GPU idle between a small
+        scene's kernels, README "GPU").  A batch ends where the device re-sort is due.
+        ``PHYSGS_TI_GRAPH=0`` runs them one by one."""
+        n = int(n)
+        if n <= 0:
+            return
+        if self.rigid is not None or self._batches is False or not batches_enabled():
+            for _ in range(n):
+                self.substep(dt)
+            return
+        done = 0
+        while done < n:
+            damp = self._begin_substep(dt)
+            m = n - done
+            if self._sorter is not None and self.resort_every > 0:
+                m = min(m, self.resort_every - self._since_sort)
+            if self._batches is None:
+                try:
+                    self._batches = _Batches(self._k.substep, self._substep_args(dt, damp) + (0,))
+                except Exception as e:  # pragma: no cover - Taichi without the graph API used here
+                    _log.warning("substep batches unavailable (%s: %s): one launch a substep", type(e).__name__, e)
+                    self._batches = False
+                    for _ in range(n - done):
+                        self.substep(dt)
+                    return
+            self.time = self._batches.run(self._substep_args(dt, damp), m, self.time, dt)
+            self._since_sort += m
+            done += m
+
+    def substep(self, dt: float) -> None:
+        """Advance by one substep of ``dt`` seconds (CONTRACTS.md step plus scene dynamics)."""
+        damp = self._begin_substep(dt)
+        b = self.bound
+        self._since_sort += 1
+        args = self._substep_args(dt, damp)
         if self.rigid is None:
             self._launch_substep(*args, 0)
         else:
@@ -772,3 +824,86 @@ def _ndarray_from(a: np.ndarray, dtype) -> "ti.Ndarray":
     arr = ti.ndarray(dtype, a.shape[: a.ndim - elem])
     arr.from_numpy(a)
     return arr
+
+
+def batches_enabled() -> bool:
+    """Whether :meth:`MPMSolver.substeps` runs substeps in ``ti.graph`` batches (on unless
+    PHYSGS_TI_GRAPH=0)."""
+    return os.environ.get("PHYSGS_TI_GRAPH", "1") != "0"
+
+
+class _Batches:
+    """Runs the substep kernel ``m`` times through ``ti.graph``: one compiled graph per batch
+    size 2^j (j <= :data:`_BATCH_LOG2`), each holding 2^j launches of the kernel's compiled
+    instance for ``part`` = 0, with the arrays and scalars shared and the time ``t`` an argument
+    of each launch; ``m`` substeps are the binary digits of ``m`` in batches, largest first.
+
+    Taichi 1.7's Python ``GraphBuilder.dispatch`` cannot take a kernel with template arguments
+    (``part``): the graph is built on the compiled instance directly (``ensure_compiled`` with
+    the real arguments, as a plain call does), with symbolic arguments for the others, named as
+    the kernel's parameters."""
+
+    def __init__(self, kernel, args: tuple):
+        from taichi.graph import _graph
+        from taichi.types import ndarray_type, template
+
+        primal = kernel._primal
+        key = primal.ensure_compiled(*args)
+        self._t_kernel = primal.compiled_kernels[key]
+        self._Arg, self._Kind, self._Builder = ti.graph.Arg, ti.graph.ArgKind, _graph.GraphBuilder
+        self._params = []  # (name, annotation) of the non-template parameters, in order
+        for a, val in zip(primal.arguments, args):
+            if isinstance(a.annotation, template):
+                if val != 0:
+                    raise ValueError("batches are built for part = 0")
+                continue
+            self._params.append((a.name, a.annotation, isinstance(a.annotation, ndarray_type.NdarrayType)))
+        if [p[0] for p in self._params].count("t") != 1:
+            raise ValueError("the substep kernel has no time argument 't'")
+        self._graphs: dict = {}
+
+    def _graph(self, size: int):
+        g = self._graphs.get(size)
+        if g is None:
+            gb = self._Builder()
+            shared = {}
+            for name, ann, is_nd in self._params:
+                if is_nd:
+                    shared[name] = self._Arg(self._Kind.NDARRAY, name, dtype=ann.dtype, ndim=ann.ndim)
+                elif name != "t":
+                    shared[name] = self._Arg(self._Kind.SCALAR, name, ann)
+            for k in range(size):
+                syms = [shared[name] if name != "t" else self._Arg(self._Kind.SCALAR, f"t{k}", ann)
+                        for name, ann, _ in self._params]
+                gb._graph_builder.dispatch(self._t_kernel, syms)
+            g = self._graphs[size] = gb._graph_builder.compile()
+        return g
+
+    def run(self, args: tuple, m: int, time: float, dt: float) -> float:
+        """``m`` substeps from ``time``; ``args`` as MPMSolver._substep_args (its ``t`` unused).
+        Returns the time after them, advanced by ``dt`` per substep as MPMSolver.substep does."""
+        base = {}
+        for (name, _ann, is_nd), val in zip(self._params, args):
+            if name != "t":
+                base[name] = val.arr if is_nd else val
+        config = _current_prog_config()
+        size = 1 << _BATCH_LOG2
+        while m > 0:
+            while size > m:
+                size >>= 1
+            values = dict(base)
+            for k in range(size):
+                values[f"t{k}"] = float(time)
+                time += dt
+            self._graph(size).jit_run(config, values)
+            m -= size
+        return time
+
+
+_BATCH_LOG2 = 5  # batches of at most 32 substeps
+
+
+def _current_prog_config():
+    from taichi.lang import impl
+
+    return impl.get_runtime().prog.config()

@@ -1,0 +1,287 @@
+"""Where a small scene's substep goes on the GPU: host time (Python, Taichi's launch), kernel
+launches (offloaded tasks) and device time, and what batching the substeps into ``ti.graph``
+launches (``MPMSolver.substeps``) leaves of it.
+
+    python benchmarks/bench_substep_launch.py [--run-dir DIR --scene bear] [--substeps N] [--profile]
+
+With ``--run-dir`` the solver is the scene's final simulation as a pipeline run left it (its
+particles.h5 and BGDO's last params.json, as benchmarks/bench_scene_substep.py); without it a
+bear-sized synthetic scene: 27,648 jelly particles (a 48 x 24 x 24 block at 1/128 spacing,
+0.1 m above the ground, grid 32), falling under gravity onto the ground.  After 300 warm-up
+substeps it prints, per substep (milliseconds unless marked):
+
+* ``single``: N calls of ``substep`` then one sync (the wall time a substep costs the GPU run);
+* ``host``: the Python loop alone over a burst of substeps too short to fill CUDA's launch queue
+  (what the host needs per substep; above the device time the GPU waits: launch-bound);
+* ``python launch context``: building the substep's launch context in Python (Launcher's
+  per-launch work: ~40 ``set_arg`` calls), without launching;
+* ``batched`` (a tree with ``MPMSolver.substeps``): N substeps in calls of 60 (a frame), one
+  sync; and its host time per substep over one 32-launch graph;
+* ``frames``: frames of 60 substeps, each followed by ``solver.stats()`` (a host sync and a
+  read-back, as run_frames does), with the batched substeps where the tree has them;
+* synthetic kernels through backend.Launcher: per-call time of a kernel with one 1-element loop
+  and 1 or 38 ndarray arguments, and with 6 or 9 such loops (offloaded tasks);
+* with ``--profile`` (Taichi's kernel profiler; it synchronises after every task): the device
+  time of each offloaded task a substep and their count.
+
+Both the batched and single substeps run the same compiled kernel; on CUDA their results differ
+only by the order of float atomics, which the ``batched vs single`` line bounds.
+"""
+import argparse
+import glob
+import logging
+import os
+import sys
+import time
+
+ap = argparse.ArgumentParser()
+ap.add_argument("--run-dir")
+ap.add_argument("--scene", default="bear")
+ap.add_argument("--substeps", type=int, default=3000)
+ap.add_argument("--arch", default="cuda")
+ap.add_argument("--profile", action="store_true")
+a = ap.parse_args()
+if a.profile:
+    os.environ["PHYSGS_TI_PROFILER"] = "1"
+
+import numpy as np  # noqa: E402
+import taichi as ti  # noqa: E402
+
+from physgs_steps.mpm import Dynamics, Material, MPMSolver  # noqa: E402
+from physgs_steps.mpm import backend as B  # noqa: E402
+
+DT = 2e-4  # the time step does not change the cost
+FRAME = 60  # substeps a frame (the default bear: 9,238 substeps over 3 x 149 frames)
+
+
+def solver() -> MPMSolver:
+    if a.run_dir:
+        from physgs_steps import config as C, simulate as S
+
+        cfg = C.load_config()
+        scene = C.load_scene(cfg, a.scene)
+        sim = C.effective_section(cfg, scene, "sim")
+        sim = {**sim, "backend": a.arch}
+        parts_h5 = sorted(glob.glob(f"{a.run_dir}/results/{a.scene}/fill/*/particles.h5"))
+        params = sorted(glob.glob(f"{a.run_dir}/results/{a.scene}/sim/*/it*/params.json"))
+        if not parts_h5 or not params:
+            sys.exit(f"no particles.h5 or params.json of {a.scene} under {a.run_dir}/results")
+        parts = S.load_particles(parts_h5[-1])
+        par, mats, labels = S.load_materials(params[-1], parts["label"])
+        return S.build_solver(parts, mats, labels, {"sim": sim, "scene": scene}, logging.getLogger("bench"), par)
+    s = 1 / 128
+    axes = [np.arange(0.3 + s / 2, 0.3 + 48 * s, s), np.arange(0.4 + s / 2, 0.4 + 24 * s, s),
+            np.arange(0.1 + s / 2, 0.1 + 24 * s, s)]
+    x = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    jelly = Material("fixed_corotated", "identity", E=2e5, nu=0.3, density=1000.0, name="jelly")
+    dyn = Dynamics.from_config({"ground": {"height": 0.05, "friction": 0.5, "surface": "separate"}}, "bench")
+    sol = MPMSolver([jelly], n_grid=32, dynamics=dyn, backend=a.arch)
+    sol.set_particles(x, np.full(len(x), s ** 3), np.zeros(len(x), int))
+    return sol
+
+
+def ms(seconds: float, n: int) -> str:
+    return f"{1e3 * seconds / n:.4f}"
+
+
+sol = solver()
+batched = hasattr(sol, "substeps")
+for _ in range(300):
+    sol.substep(DT)
+if batched:
+    sol.substeps(300, DT)  # builds the graphs
+ti.sync()
+print(f"scene: {sol.n_particles} particles, grid {sol.n_grid}, arch {B.current_arch()}, p2g {sol.p2g}, "
+      f"tree {'with' if batched else 'without'} MPMSolver.substeps", flush=True)
+N = a.substeps
+
+if a.profile:
+    from collections import defaultdict
+
+    from taichi.profiler.kernel_profiler import get_default_kernel_profiler
+
+    ti.profiler.clear_kernel_profiler_info()
+    n = 200
+    for _ in range(n):
+        sol.substep(DT)
+    ti.sync()
+    prof = get_default_kernel_profiler()
+    prof._update_records()
+    per, count = defaultdict(float), defaultdict(int)
+    for rec in prof._traced_records:
+        per[rec.name] += rec.kernel_time
+        count[rec.name] += 1
+    tasks = sum(count.values()) / n
+    total = sum(per.values()) / n
+    print(f"profile: {tasks:.1f} offloaded tasks (launches) a substep, device time {total:.4f} ms a substep")
+    for name, v in sorted(per.items(), key=lambda kv: -kv[1]):
+        print(f"  {v / n:8.4f} ms  x{count[name] / n:.0f}  {name}")
+    sys.exit(0)
+
+# single substeps
+ti.sync()
+t = time.perf_counter()
+for _ in range(N):
+    sol.substep(DT)
+ti.sync()
+single = time.perf_counter() - t
+print(f"single: {ms(single, N)} ms a substep ({N} substeps)", flush=True)
+
+# host time alone, bursts that do not fill the launch queue
+hs = []
+for _ in range(20):
+    ti.sync()
+    t = time.perf_counter()
+    for _ in range(16):
+        sol.substep(DT)
+    hs.append(time.perf_counter() - t)
+ti.sync()
+print(f"host: {ms(min(hs), 16)} ms a substep (min over 20 bursts of 16; median {ms(sorted(hs)[10], 16)})")
+
+# Python's share: building the launch context (no launch)
+plan = sol._launch_substep._plan
+if plan is not None:
+    _arrays, _templates, t_kernel, nd_slots, sc_slots = plan
+    args = None
+    t = time.perf_counter()
+    for _ in range(N):
+        ctx = t_kernel.make_launch_context()
+        for _i, idx, arr in nd_slots:
+            ctx.set_arg_ndarray(idx, arr)
+        for _i, idx, kind in sc_slots:
+            ctx.set_arg_float(idx, 1.0)
+    py = time.perf_counter() - t
+    prog = B._current_prog()
+    t = time.perf_counter()
+    for _ in range(N):
+        prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
+    look = time.perf_counter() - t
+    print(f"python launch context: {ms(py, N)} ms a substep ({len(nd_slots)} ndarrays, {len(sc_slots)} scalars); "
+          f"compiled-kernel lookup {ms(look, N)} ms")
+
+if batched:
+    ti.sync()
+    t = time.perf_counter()
+    done = 0
+    while done < N:
+        m = min(FRAME, N - done)
+        sol.substeps(m, DT)
+        done += m
+    ti.sync()
+    bt = time.perf_counter() - t
+    hb = []
+    for _ in range(20):
+        ti.sync()
+        t = time.perf_counter()
+        sol.substeps(32, DT)
+        hb.append(time.perf_counter() - t)
+    ti.sync()
+    print(f"batched: {ms(bt, N)} ms a substep in calls of {FRAME} ({single / bt:.2f}x single); host "
+          f"{ms(min(hb), 32)} ms a substep (min over 20 graphs of 32; median {ms(sorted(hb)[10], 32)})", flush=True)
+
+# frames: substeps + stats() (a sync and read-back a frame)
+nf = max(1, N // FRAME)
+ti.sync()
+t = time.perf_counter()
+for _ in range(nf):
+    if batched:
+        sol.substeps(FRAME, DT)
+    else:
+        for _ in range(FRAME):
+            sol.substep(DT)
+    sol.stats()
+fr = time.perf_counter() - t
+print(f"frames: {ms(fr, nf * FRAME)} ms a substep with stats() after every {FRAME} "
+      f"({'batched' if batched else 'single'}); stats() {ms(fr - (bt if batched else single) * nf * FRAME / N, nf)} "
+      f"ms a frame beyond the substeps")
+
+# equivalence on this arch: batched vs single from the same state
+if batched:
+    st0 = sol.get_state()
+    t0 = sol.time
+    sol.set_state(st0["x"], st0["v"], st0["C"], st0["F"])
+    for _ in range(300):
+        sol.substep(DT)
+    st1 = sol.get_state()
+    sol.set_state(st0["x"], st0["v"], st0["C"], st0["F"])
+    sol.time = t0
+    sol.substeps(300, DT)
+    st2 = sol.get_state()
+    moved = float(np.abs(st1["x"] - st0["x"]).max())
+    diff = float(np.abs(st1["x"] - st2["x"]).max())
+    print(f"batched vs single, 300 substeps from one state: max |x| difference {diff:.3g} (domain units; "
+          f"the particles moved up to {moved:.3g}), bitwise {np.array_equal(st1['x'], st2['x'])}")
+
+# synthetic kernels: per-argument and per-task costs of a launch
+V1 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+
+
+@ti.kernel
+def one_arg(a0: V1):
+    for i in range(1):
+        a0[i] += 1.0
+
+
+@ti.kernel
+def many_args(a0: V1, a1: V1, a2: V1, a3: V1, a4: V1, a5: V1, a6: V1, a7: V1, a8: V1, a9: V1, a10: V1, a11: V1,
+              a12: V1, a13: V1, a14: V1, a15: V1, a16: V1, a17: V1, a18: V1, a19: V1, a20: V1, a21: V1, a22: V1,
+              a23: V1, a24: V1, a25: V1, a26: V1, a27: V1, a28: V1, a29: V1, f0: ti.f32, f1: ti.f32, f2: ti.f32,
+              f3: ti.f32, f4: ti.f32, f5: ti.f32, f6: ti.f32, f7: ti.f32):
+    for i in range(1):
+        a0[i] += f0
+
+
+@ti.kernel
+def six_tasks(a0: V1):
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+
+
+@ti.kernel
+def nine_tasks(a0: V1):
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+    for i in range(1):
+        a0[i] += 1.0
+
+
+arrs = [ti.ndarray(ti.f32, 8) for _ in range(30)]
+for name, kern, args in (("1 ndarray, 1 task", one_arg, (arrs[0],)),
+                         ("30 ndarrays + 8 scalars, 1 task", many_args, tuple(arrs) + (1.0,) * 8),
+                         ("1 ndarray, 6 tasks", six_tasks, (arrs[0],)),
+                         ("1 ndarray, 9 tasks", nine_tasks, (arrs[0],))):
+    lau = B.Launcher(kern)
+    for _ in range(50):
+        lau(*args)
+    ti.sync()
+    n = 3000
+    t = time.perf_counter()
+    for _ in range(n):
+        lau(*args)
+    ti.sync()
+    el = time.perf_counter() - t
+    print(f"synthetic {name}: {1e6 * el / n:.1f} us a call (Launcher)")
