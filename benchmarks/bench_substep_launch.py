@@ -28,7 +28,6 @@ Both the batched and single substeps run the same compiled kernel; on CUDA their
 only by the order of float atomics, which the ``batched vs single`` line bounds.
 """
 import argparse
-import glob
 import logging
 import os
 import sys
@@ -56,19 +55,12 @@ FRAME = 60  # substeps a frame (the default bear: 9,238 substeps over 3 x 149 fr
 
 def solver() -> MPMSolver:
     if a.run_dir:
-        from physgs_steps import config as C, simulate as S
+        from physgs_steps import simulate as S
 
-        cfg = C.load_config()
-        scene = C.load_scene(cfg, a.scene)
-        sim = C.effective_section(cfg, scene, "sim")
-        sim = {**sim, "backend": a.arch}
-        parts_h5 = sorted(glob.glob(f"{a.run_dir}/results/{a.scene}/fill/*/particles.h5"))
-        params = sorted(glob.glob(f"{a.run_dir}/results/{a.scene}/sim/*/it*/params.json"))
-        if not parts_h5 or not params:
-            sys.exit(f"no particles.h5 or params.json of {a.scene} under {a.run_dir}/results")
-        parts = S.load_particles(parts_h5[-1])
-        par, mats, labels = S.load_materials(params[-1], parts["label"])
-        return S.build_solver(parts, mats, labels, {"sim": sim, "scene": scene}, logging.getLogger("bench"), par)
+        run = S.load_run(a.run_dir, a.scene)
+        return S.build_solver(run["parts"], run["materials"], run["labels"],
+                              {"sim": {**run["sim"], "backend": a.arch}, "scene": run["scene"]},
+                              logging.getLogger("bench"), run["params"])
     s = 1 / 128
     axes = [np.arange(0.3 + s / 2, 0.3 + 48 * s, s), np.arange(0.4 + s / 2, 0.4 + 24 * s, s),
             np.arange(0.1 + s / 2, 0.1 + 24 * s, s)]

@@ -271,6 +271,11 @@ def test_stats_detect_nonfinite_and_escaped_particles():
     assert s.stats()["outside"][0] >= 10
     s.substep(1e-3)
     assert s.stats()["clamped"] >= 10
+    assert s.stats()["clamped"] == 0  # counted since the last call: reset by it
+    s._err.from_numpy(np.array([3 * 4096 + 5, 0, 0, 0], np.int32))  # exact past f32's 2^24 too
+    assert s.stats()["clamped"] == 3 * 4096 + 5
+    s._err.from_numpy(np.array([2 ** 27 + 1, 0, 0, 0], np.int32))
+    assert s.stats()["clamped"] == 2 ** 27 + 1
     s.set_state(x, np.zeros_like(x), np.zeros((len(x), 3, 3)), F)
     F2 = F.copy()
     F2[:3] = np.nan

@@ -1204,10 +1204,27 @@ def _mat_bad(a) -> ti.i32:
 
 
 @ti.kernel
-def frame_stats(x: V1, v: V1, F: M1, mat: I1, out: S2, dx: ti.f32, G: ti.i32):
-    """Per material k: out[k] = [non-finite count, J min, J max, speed max, outside count].
-    ``out`` must be reset by the caller to [0, +big, -big, 0, 0]."""
+def frame_stats(x: V1, v: V1, F: M1, mat: I1, out: S2, err: I1, dx: ti.f32, G: ti.i32):
+    """Per material k: out[k, :5] = [non-finite count, J min, J max, speed max, outside count]
+    (started here from [0, +big, -big, 0, 0]); out[0, 5:7] = the clamped count err[0] as
+    (err[0] // 4096, err[0] % 4096) (exact in f32), and ``err`` reset to 0: a frame's statistics
+    in one launch and one read-back (each ``from_numpy``/``to_numpy`` of a Taichi ndarray is a
+    launch and a host synchronisation of its own)."""
     inv_dx = 1.0 / dx
+    for k in range(out.shape[0]):
+        out[k, 0] = 0.0
+        out[k, 1] = 3e38
+        out[k, 2] = -3e38
+        out[k, 3] = 0.0
+        out[k, 4] = 0.0
+        out[k, 5] = 0.0
+        out[k, 6] = 0.0
+    ti.loop_config(serialize=True)
+    for i in range(err.shape[0]):
+        if i == 0:
+            out[0, 5] = ti.cast(err[0] // 4096, ti.f32)
+            out[0, 6] = ti.cast(err[0] % 4096, ti.f32)
+        err[i] = 0
     for p in x:
         m = mat[p]
         xp = x[p]
@@ -1223,6 +1240,18 @@ def frame_stats(x: V1, v: V1, F: M1, mat: I1, out: S2, dx: ti.f32, G: ti.i32):
             g = xp * inv_dx
             if g.min() < 0.5 or g.max() >= ti.cast(G, ti.f32) - 1.5:
                 ti.atomic_add(out[m, 4], 1.0)
+
+
+@ti.kernel
+def copy_state(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, ox: V1, ov: V1, oC: M1, oF: M1, otau: M1, oep: S1):
+    """(ox, ov, oC, oF, otau, oep) = (x, v, C, F, tau, ep): the solver's backup in one launch."""
+    for p in x:
+        ox[p] = x[p]
+        ov[p] = v[p]
+        oC[p] = C[p]
+        oF[p] = F[p]
+        otau[p] = tau[p]
+        oep[p] = ep[p]
 
 
 @ti.kernel

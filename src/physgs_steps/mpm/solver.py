@@ -415,7 +415,9 @@ class MPMSolver:
         # the node box of the substep kernel (kernels.py): rows cur, previous, union, per chunk
         self._box = ti.ndarray(ti.i32, (3 + T, 6))
         self._box_full()
-        self._stats = ti.ndarray(ti.f32, (len(self.materials), len(STAT_COLUMNS)))
+        # kernels.frame_stats: the STAT_COLUMNS, then the clamped count (row 0) in two columns
+        self._stats = ti.ndarray(ti.f32, (len(self.materials), len(STAT_COLUMNS) + 2))
+        self._launch_stats = Launcher(K.frame_stats)
         self._backup = None
 
     def _box_full(self) -> None:
@@ -682,12 +684,10 @@ class MPMSolver:
         nonfinite (count), j_min, j_max, speed_max (m/s), outside (count) plus ``clamped``
         (particles whose stencil left the grid since the last call)."""
         self._require_particles()
-        init = np.zeros((len(self.materials), len(STAT_COLUMNS)), np.float32)
-        init[:, 1] = np.float32(3e38)
-        init[:, 2] = np.float32(-3e38)
-        self._stats.from_numpy(init)
-        K.frame_stats(self.x, self.v, self.F, self._mat, self._stats, float(self.dx), self.n_grid)
-        a = self._stats.to_numpy().astype(np.float64)
+        self._launch_stats(self.x, self.v, self.F, self._mat, self._stats, self._err, float(self.dx), self.n_grid)
+        raw = self._stats.to_numpy()  # the one host synchronisation (kernels.frame_stats)
+        clamped = int(raw[0, -2]) * 4096 + int(raw[0, -1])
+        a = raw[:, : len(STAT_COLUMNS)].astype(np.float64)
         for _rows, x, v, _C, _F, b in self._proxied_state():  # bodies with proxies: their full sets too
             k = self._rigid_k[b]
             bad = ~(np.isfinite(x).all(1) & np.isfinite(v).all(1))
@@ -698,9 +698,7 @@ class MPMSolver:
         empty = a[:, 1] > a[:, 2]  # no simulated particle (fixed instances): neutral values
         a[empty, 1:3] = 1.0
         out = {c: a[:, i] for i, c in enumerate(STAT_COLUMNS)}
-        err = self._err.to_numpy()
-        out["clamped"] = int(err[0])
-        self._err.from_numpy(np.zeros(4, np.int32))
+        out["clamped"] = clamped
         return out
 
     # ------------------------------------------------------------------ backup / output
@@ -710,8 +708,11 @@ class MPMSolver:
             P = self.n_particles
             self._backup = {"x": ti.ndarray(K.vec3, P), "v": ti.ndarray(K.vec3, P), "C": ti.ndarray(K.mat3, P),
                             "F": ti.ndarray(K.mat3, P), "tau": ti.ndarray(K.mat3, P), "ep": ti.ndarray(ti.f32, P)}
-        for name, arr in self._backup.items():
-            arr.copy_from(getattr(self, name))
+            self._launch_save = Launcher(K.copy_state)  # one launch for the six arrays
+            self._launch_restore = Launcher(K.copy_state)
+        bk = self._backup
+        self._launch_save(self.x, self.v, self.C, self.F, self.tau, self.ep,
+                          bk["x"], bk["v"], bk["C"], bk["F"], bk["tau"], bk["ep"])
         self._backup_time = self.time
         self._backup_order = (self.sort_generation, self._perm.copy())
         self._backup_rigid = self.rigid.copy_state() if self.rigid is not None else None
@@ -721,8 +722,9 @@ class MPMSolver:
         """Return to the state saved by :meth:`save_backup`."""
         if self._backup is None:
             raise RuntimeError("no backup saved")
-        for name, arr in self._backup.items():
-            getattr(self, name).copy_from(arr)
+        bk = self._backup
+        self._launch_restore(bk["x"], bk["v"], bk["C"], bk["F"], bk["tau"], bk["ep"],
+                             self.x, self.v, self.C, self.F, self.tau, self.ep)
         self._restore_order(*self._backup_order)
         self.time = self._backup_time
         if self.rigid is not None:
