@@ -19,10 +19,11 @@ substeps it prints, per substep (milliseconds unless marked):
   sync; and its host time per substep over one 32-launch graph;
 * ``frames``: frames of 60 substeps, each followed by ``solver.stats()`` (a host sync and a
   read-back, as run_frames does), with the batched substeps where the tree has them;
+* ``per frame``: ``stats()`` and ``save_backup()`` (forward_sim's every frame) alone;
 * synthetic kernels through backend.Launcher: per-call time of a kernel with one 1-element loop
   and 1 or 38 ndarray arguments, and with 6 or 9 such loops (offloaded tasks);
 * with ``--profile`` (Taichi's kernel profiler; it synchronises after every task): the device
-  time of each offloaded task a substep and their count.
+  time of each offloaded task a substep and their count, and the same for a ``stats()`` call.
 
 Both the batched and single substeps run the same compiled kernel; on CUDA their results differ
 only by the order of float atomics, which the ``batched vs single`` line bounds.
@@ -108,6 +109,19 @@ if a.profile:
     print(f"profile: {tasks:.1f} offloaded tasks (launches) a substep, device time {total:.4f} ms a substep")
     for name, v in sorted(per.items(), key=lambda kv: -kv[1]):
         print(f"  {v / n:8.4f} ms  x{count[name] / n:.0f}  {name}")
+    ti.profiler.clear_kernel_profiler_info()
+    prof._traced_records.clear()
+    for _ in range(20):
+        sol.stats()
+    ti.sync()
+    prof._update_records()
+    per, count = defaultdict(float), defaultdict(int)
+    for rec in prof._traced_records:
+        per[rec.name] += rec.kernel_time
+        count[rec.name] += 1
+    print(f"profile of stats(): {sum(count.values()) / 20:.1f} tasks, device time {sum(per.values()) / 20:.4f} ms a call")
+    for name, v in sorted(per.items(), key=lambda kv: -kv[1]):
+        print(f"  {v / 20:8.4f} ms  x{count[name] / 20:.0f}  {name}")
     sys.exit(0)
 
 # single substeps
@@ -186,6 +200,20 @@ fr = time.perf_counter() - t
 print(f"frames: {ms(fr, nf * FRAME)} ms a substep with stats() after every {FRAME} "
       f"({'batched' if batched else 'single'}); stats() {ms(fr - (bt if batched else single) * nf * FRAME / N, nf)} "
       f"ms a frame beyond the substeps")
+
+# the per-frame work alone: stats() (run_frames, every frame), save_backup() (forward_sim, every frame)
+ti.sync()
+t = time.perf_counter()
+for _ in range(200):
+    sol.stats()
+st_s = time.perf_counter() - t
+ti.sync()
+t = time.perf_counter()
+for _ in range(200):
+    sol.save_backup()
+ti.sync()
+bk_s = time.perf_counter() - t
+print(f"per frame: stats() {ms(st_s, 200)} ms a call, save_backup() {ms(bk_s, 200)} ms a call (200 calls each)")
 
 # equivalence on this arch: batched vs single from the same state
 if batched:

@@ -293,17 +293,26 @@ def test_cuda_substeps_match_cpu():
     x, vol = block([0.35, 0.35, 0.3], [0.6, 0.55, 0.5], 1 / 64, seed=4)
     states = []
     try:
-        for arch in ("cpu", "cuda"):
+        for arch, batched in (("cpu", False), ("cuda", False), ("cuda", True)):
             s = MPMSolver([JELLY], n_grid=32, backend=arch)
             assert s.arch == arch
             s.set_particles(x, vol, np.zeros(len(x), int))
-            for _ in range(100):
-                s.substep(1e-3)
-            states.append(s.get_state())
+            if batched:  # ti.graph batches (MPMSolver.substeps) on CUDA
+                s.substeps(100, 1e-3)
+                assert sorted(s._batches._graphs) == [4, 32]
+            else:
+                for _ in range(100):
+                    s.substep(1e-3)
+            states.append((s.get_state(), s.stats()))
     finally:
         ensure_taichi("cpu")
-    for k in ("x", "v", "F"):
-        assert np.allclose(states[0][k], states[1][k], atol=2e-4, rtol=1e-3), k
+    (cpu, st_cpu), *gpu = states
+    for g, st in gpu:
+        for k in ("x", "v", "F"):
+            assert np.allclose(cpu[k], g[k], atol=2e-4, rtol=1e-3), k
+        for k in ("nonfinite", "outside", "clamped"):
+            assert np.array_equal(st_cpu[k], st[k]), k
+        assert np.allclose(st_cpu["j_min"], st["j_min"], rtol=1e-3) and np.allclose(st_cpu["j_max"], st["j_max"], rtol=1e-3)
 
 
 def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):

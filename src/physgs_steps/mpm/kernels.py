@@ -1211,6 +1211,7 @@ def frame_stats(x: V1, v: V1, F: M1, mat: I1, out: S2, err: I1, dx: ti.f32, G: t
     in one launch and one read-back (each ``from_numpy``/``to_numpy`` of a Taichi ndarray is a
     launch and a host synchronisation of its own)."""
     inv_dx = 1.0 / dx
+    ti.loop_config(serialize=True)  # K rows: with the err loop below one serial task
     for k in range(out.shape[0]):
         out[k, 0] = 0.0
         out[k, 1] = 3e38
