@@ -83,6 +83,8 @@ for _ in range(300):
     sol.substep(DT)
 if batched:
     sol.substeps(300, DT)  # builds the graphs
+sol.stats()  # compiled (or loaded) before any timing: a first call's compilation would count
+sol.save_backup()
 ti.sync()
 print(f"scene: {sol.n_particles} particles, grid {sol.n_grid}, arch {B.current_arch()}, p2g {sol.p2g}, "
       f"tree {'with' if batched else 'without'} MPMSolver.substeps", flush=True)
