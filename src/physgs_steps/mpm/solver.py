@@ -8,6 +8,7 @@ Usage (arrays in DOMAIN UNITS, as stored in HDF5 and used by the torch pseudo-st
     s.set_particles(x, vol, material)        # x [P,3] in [0,1], vol [P] (domain units^3), material [P] int
     s.set_state(x, v, C, F)                  # optional: any state (v in domain units/s)
     s.substep(dt)                            # one step of dt seconds
+    s.substeps(n, dt)                        # n of them (ti.graph batches: fewer host costs on CUDA)
     st = s.get_state()                       # {"x", "v", "C", "F"} float32, rows in input order
 
 Inside, the solver works in SI units (x_phys = L x with L = ``domain_size`` metres,
