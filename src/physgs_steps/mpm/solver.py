@@ -854,7 +854,7 @@ class _Batches:
         key = primal.ensure_compiled(*args)
         self._t_kernel = primal.compiled_kernels[key]
         self._Arg, self._Kind, self._Builder = ti.graph.Arg, ti.graph.ArgKind, _graph.GraphBuilder
-        self._params = []  # (name, annotation) of the non-template parameters, in order
+        self._params = []  # (name, annotation, is an ndarray) of the non-template parameters, in order
         for a, val in zip(primal.arguments, args):
             if isinstance(a.annotation, template):
                 if val != 0:
