@@ -17,7 +17,7 @@ import torch
 from physgs_steps import bgdo as B
 from physgs_steps import config as C
 from physgs_steps.errors import ConfigError, InputError
-from physgs_steps.mpm.colliders import FRONT_BAND, TOUCH
+from physgs_steps.mpm.colliders import FRONT_BAND, MIRROR_MASS, TOUCH
 from physgs_steps.mpm.material import FLIP_RATIO
 
 LOG = logging.getLogger("test_bgdo")
@@ -136,24 +136,26 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
     walls = [(a, sg, margin * L if sg > 0 else L - margin * L) for a in range(3) for sg in (1.0, -1.0)]
     engaged = set()
     for p in range(P):
-        if min(sg * (xs[p][a] - pos) for a, sg, pos in walls) < TOUCH * dx:
+        # a particle's face (half its volume's cube root beyond its centre) within TOUCH cells of a wall
+        if min(sg * (xs[p][a] - pos) for a, sg, pos in walls) - 0.5 * (vol[p] * L ** 3) ** (1 / 3) < TOUCH * dx:
             base = stencils[p][0]
             engaged |= {tuple(base + np.array(o)) for o in itertools.product(range(3), repeat=3)}
     pre = {}
     for node, m in grid_m.items():
         pre[node] = grid_v[node] / m + dt * np.asarray(g, float) if m > 0 else np.zeros(3)
 
-    def mirror(xm):
+    def mirror(xm, m_min):
         b0 = np.floor(xm / dx).astype(int)
         fr = xm / dx - b0
-        acc, ws = np.zeros(3), 0.0
+        acc, ws, ms = np.zeros(3), 0.0, 0.0
         for o in itertools.product(range(2), repeat=3):
             nd = tuple(b0 + np.array(o))
             if grid_m.get(nd, 0.0) > 0:
                 wgt = np.prod([fr[a] if o[a] else 1 - fr[a] for a in range(3)])
                 acc += wgt * pre[nd]
                 ws += wgt
-        return (acc / ws) if ws > 1e-6 else None
+                ms += wgt * grid_m[nd]
+        return (acc / ws) if ws > 1e-6 and ms >= m_min * ws else None
 
     for node, m in grid_m.items():
         if m <= 0:
@@ -168,7 +170,8 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
             nrm = np.zeros(3)
             nrm[a] = sg
             d = (FRONT_BAND + 1.0) * dx  # the mirror point lies d in front of the wall
-            vm = mirror(xn + (d - phi) * nrm) if phi > -2 * dx else None
+            # a ghost node (behind) reads its mirror only where it holds MIRROR_MASS of the node's own mass
+            vm = mirror(xn + (d - phi) * nrm, MIRROR_MASS * m if phi < 0 else 0.0) if phi > -2 * dx else None
             q = phi / d
             if vm is None:  # plain rule
                 if boundary == "sticky":

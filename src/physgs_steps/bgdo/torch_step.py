@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .. import materials_kb
-from ..mpm.colliders import COVER, FRINGE_SOFT, FRONT_BAND, GHOST_BAND, TOUCH
+from ..mpm.colliders import COVER, FRINGE_SOFT, FRONT_BAND, GHOST_BAND, MIRROR_MASS, TOUCH
 from ..mpm.material import FLIP_RATIO
 
 # ----------------------------------------------------------------------------- model names
@@ -589,9 +589,10 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     if body is not None and bool((body >= 0).any()):
         gv, field, covered = _rigid_grid(gv, grid_m, uniq, inv.reshape(P, 27), weight, mom, p_mass, body, cover, G,
                                          dx, dt, g)
-    # a wall acts on the nodes of (deformable) particles that touch it (colliders.py)
+    # a wall acts on the nodes of (deformable) particles that touch it: a particle's face (half its
+    # volume's cube root beyond its centre) within TOUCH cells of it (colliders.py)
     phi_p = torch.stack([sgn * (x[:, a] - pos) for a, sgn, pos in _wall_planes(G, dx, grid)], -1).min(-1).values
-    touch = phi_p < TOUCH * dx
+    touch = phi_p - 0.5 * torch.pow(p_vol, 1.0 / 3.0) < TOUCH * dx
     if rigid is not None:
         touch = touch & ~rigid
     engaged = torch.zeros(M, dtype=torch.bool, device=dev)
@@ -707,6 +708,8 @@ def _walls(gv: torch.Tensor, gm: torch.Tensor, uniq: torch.Tensor, G: int, dx: f
         wcor = wcor * (inside & (dense_m[nk] > 0)).to(dtp)
         wsum = wcor.sum(1)
         ok = wsum > 1e-6
+        # a ghost node reads its mirror only where the mirror's mean node mass is MIRROR_MASS of its own
+        ok = ok & ((phi >= 0) | ((wcor * dense_m[nk]).sum(1) >= MIRROR_MASS * gm * wsum))
         vm = (wcor[..., None] * dense_v[nk]).sum(1) / torch.where(ok, wsum, torch.ones_like(wsum))[:, None]
         q = (phi / d)[:, None]
         un = vm @ n

@@ -35,9 +35,22 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
 (measurements: benchmarks/bench_boundaries.py, README "Where the paper is vague"):
 
 * grid (kernels.py): an obstacle acts on a node only where material touches it: a node
-  to which a particle transfers whose centre is within ``TOUCH`` cells of the obstacle (or
+  to which a particle transfers whose face is within ``TOUCH`` cells of the obstacle (or
   behind it); without this, grid contact reaches about 1.5 cells in front of the surface and
-  a body comes to rest anywhere in that layer, depending on how it arrived.  (``TOUCH`` is a
+  a body comes to rest anywhere in that layer, depending on how it arrived.  A particle is a
+  cube of material of its volume (side ``p_vol^(1/3)``, as the level sets above take points
+  for cells of their spacing), so its face lies half that side in front of its centre: a
+  body touches the surface when its material does, and one whose face is on it stays there.
+  With the centres (before; validation ``resting_block`` and ``incline_friction``) a body had
+  to sink until its lowest centres were within ``TOUCH`` of the plane, half a particle spacing
+  less ``TOUCH`` (0.15 cells at 8 per cell): a block set on a floor fell that far and rested
+  with its face that far below the plane (5 % of a 0.1 m block at n_grid 32, first order in
+  dx), and a block set on a rough incline fell for a frame before it touched, sliding free
+  meanwhile, and its landing braked it by about two thirds of mu times the landing's normal
+  impulse (the bottom nodes' tangential velocity stops at zero): it slid 6 % too far at
+  n_grid 32, 5.5 % at 48, not shrinking with dx.  For a
+  reconstruction, whose surface gaussians lie on its surface, the surface gaussians now rest
+  half their spacing above the plane.  (``TOUCH`` is a
   tenth of a cell, not zero: a resting particle bobbing by a rounding error must not switch
   its support off for a substep, which lets the lowest layers creep onto the plane.)  Such a
   node with mass and ``-GHOST_BAND dx < phi < FRONT_BAND dx`` gets a velocity on the line
@@ -83,13 +96,21 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
   cuboid's ghost node also reads its mirror only where the mirror's mean node mass is at least
   ``MIRROR_MASS`` (half) of its own, else it takes the plain rule (a sparse fringe of free
   material in front of a full holding region: a plant's stem at the pot's rim; the ficus at
-  grid 64 went NaN in 4 frames before either rule; the test has a small copy).  Deeper nodes,
+  grid 64 went NaN in 4 frames before either rule; the test has a small copy).  Ground,
+  surface colliders and level sets apply the same test to their ghost nodes (``phi < 0``): a
+  body thinner than the mirror distance (2 cells) puts the mirror in the fringe above it,
+  nodes holding the tail of one layer's stencil (0.5 % of a node's mass for a 0.8-cell block),
+  whose velocity its stress drives through that tiny mass; extrapolated into the ghost row it
+  closed a loop (ghost row -> lowest layer's C and F -> stress -> fringe) that grew about e-fold
+  per frame: a 0.8-cell block resting on a rough incline (validation ``incline_friction``
+  ``stick`` at n_grid 16) lifted off and slid 18 mm.  Their front rows keep reading any mirror
+  (a thin surge front on the floor: the dam break's front is unchanged).  Deeper nodes,
   or nodes whose mirror has no mass, get the plain node rule (sticky: v_c; slip/separate:
   inward normal part removed, friction).
 * particles: after G2P a deformable particle with ``phi < 0`` is moved back onto the surface
-  (``x -= phi n``) and its inward normal velocity removed (sticky: ``v = v_c``).  So a body's
-  outermost particles (for a reconstruction: the surface gaussians) rest on the surface, within
-  ``TOUCH`` (a tenth of a cell) of it: contact starts there (bench_boundaries.py).  A
+  (``x -= phi n``) and its inward normal velocity removed (sticky: ``v = v_c``).  A body's
+  outermost material rests on the surface, within ``TOUCH`` (a tenth of a cell) of it: contact
+  starts there (bench_boundaries.py); its outermost centres half a particle's side above.  A
   cuboid is a holding region, not an obstacle: a particle inside an active cuboid moves with
   the cuboid and strains with the velocity field the ghost nodes extend into the box, so the
   stress stays continuous across the face and the free material is clamped exactly at the
@@ -111,11 +132,11 @@ import numpy as np
 from ..errors import ConfigError, InputError
 
 SURFACE_KIND = {"sticky": 0.0, "slip": 1.0, "separate": 2.0}
-TOUCH = 0.1          # cells: a particle this close to an obstacle (or behind it) touches it
+TOUCH = 0.1          # cells: a particle whose face (half its side in front of its centre) is this close to an obstacle (or behind it) touches it
 GHOST_BAND = 2.0     # nodes up to this many cells behind a surface get ghost velocities
 FRONT_BAND = 1.0     # cells: engaged nodes this close in front of an obstacle carry its reaction
 HELD_REACH = 1.5     # cells: a held particle's stencil reaches nodes less than this far in front of its holding region (cuboid mirrors lie beyond it)
-MIRROR_MASS = 0.5    # cuboids: a ghost node reads its mirror only where the mirror's mean node mass is this fraction of its own
+MIRROR_MASS = 0.5    # ghost nodes (cuboids; obstacles behind their surface) read their mirror only where the mirror's mean node mass is this fraction of their own
 FINE = 4             # level sets: voxels per grid cell of the fine occupancy grid
 MAX_FINE_VOXELS = 40_000_000
 OCC_RADIUS = 1.25    # union-of-balls radius in point spacings

@@ -494,14 +494,16 @@ def build(spec: Spec) -> SimpleNamespace:
         return vp
 
     @ti.func
-    def _touching(xp, t, dx, L, wall, dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
+    def _touching(xp, half, t, dx, L, wall, dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
                   lvl_rows: ti.template()):
-        """1 when the particle at xp touches (or is behind) an active obstacle."""
+        """1 when the particle at xp, a cube of material of side 2 ``half`` (its volume's cube
+        root), touches (or is behind) an active obstacle: its face within TOUCH cells of it
+        (colliders.py "Boundary placement")."""
         touch = 0
         for s in range(n_obst):
             active, phi, n, vc, kind, fric = col.slot(s, xp, ti.Vector([0, 0, 0]), False, t, dx, L, wall, dyn,
                                                       lvl_phi, lvl_id, lvl_rows)
-            if active == 1 and phi < TOUCH * dx:
+            if active == 1 and phi - half < TOUCH * dx:
                 touch = 1
         return touch
 
@@ -526,7 +528,7 @@ def build(spec: Spec) -> SimpleNamespace:
                 held, _ = _held(xp, t, dyn)
         touch = 0
         if rigid == 0 and held == 0:
-            touch = _touching(xp, t, dx, L, wall, dyn, lvl_phi, lvl_id, lvl_rows)
+            touch = _touching(xp, 0.5 * ti.pow(p_vol[p], 1.0 / 3.0), t, dx, L, wall, dyn, lvl_phi, lvl_id, lvl_rows)
         base, fx, w = _stencil(xp, inv_dx, G, err)
         vp = v[p]
         if ti.static(has_actions):
@@ -877,8 +879,13 @@ def build(spec: Spec) -> SimpleNamespace:
                             if active == 1:
                                 if s < n_obst:
                                     if engaged and phi < FRONT_BAND * dx:
+                                        # a ghost node (behind) reads its mirror only where the mirror
+                                        # holds MIRROR_MASS of its own mass (colliders.py)
+                                        m_min = 0.0
+                                        if phi < 0.0:
+                                            m_min = MIRROR_MASS * grid_m[0, i, j, k]
                                         gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, FRONT_BAND,
-                                                               0.0, grid_v, grid_m, grid_r, rigid_cid >= 0)
+                                                               m_min, grid_v, grid_m, grid_r, rigid_cid >= 0)
                                 elif phi < 0.0:
                                     gv, pushed = col.ghost(xn, gv, gv0, pushed, phi, n, vc, kind, fric, dx, HELD_REACH,
                                                            MIRROR_MASS * grid_m[0, i, j, k], grid_v, grid_m, grid_r,
