@@ -103,9 +103,11 @@ def np_return_map(F, mu, lam, pp, model):
     return U @ np.diag(np.exp(e + c)) @ V.T
 
 
-def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), boundary="slip", margin=0.1):
+def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), boundary="slip", margin=0.1,
+            filled=None):
     """Loop-by-loop MLS-MPM step of CONTRACTS.md in float64; arrays in domain units.
-    models: per particle (elasticity, plasticity, plasticity params); E, nu, rho per particle."""
+    models: per particle (elasticity, plasticity, plasticity params); E, nu, rho per particle;
+    filled: per particle, False for a visible gaussian (its face at its centre; default all True)."""
     P = x.shape[0]
     dx = L / G
     inv_dx = 1 / dx
@@ -136,8 +138,10 @@ def np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=1.0, g=(0, 0, -9.8), 
     walls = [(a, sg, margin * L if sg > 0 else L - margin * L) for a in range(3) for sg in (1.0, -1.0)]
     engaged = set()
     for p in range(P):
-        # a particle's face (half its volume's cube root beyond its centre) within TOUCH cells of a wall
-        if min(sg * (xs[p][a] - pos) for a, sg, pos in walls) - 0.5 * (vol[p] * L ** 3) ** (1 / 3) < TOUCH * dx:
+        # a particle's face (half its volume's cube root beyond a filled particle's centre, at a
+        # gaussian's centre) within TOUCH cells of a wall
+        face = 0.5 * (vol[p] * L ** 3) ** (1 / 3) if filled is None or filled[p] else 0.0
+        if min(sg * (xs[p][a] - pos) for a, sg, pos in walls) - face < TOUCH * dx:
             base = stencils[p][0]
             engaged |= {tuple(base + np.array(o)) for o in itertools.product(range(3), repeat=3)}
     pre = {}
@@ -365,26 +369,34 @@ def test_pseudo_step_and_gradient_same_with_either_svd(monkeypatch):
 
 
 # ----------------------------------------------------------------------------- the step
-@pytest.mark.parametrize("boundary", ["slip", "sticky"])
-def test_step_matches_numpy_reference(boundary):
+@pytest.mark.parametrize("boundary,gaussians", [("slip", False), ("sticky", False), ("slip", True),
+                                                ("sticky", True)])
+def test_step_matches_numpy_reference(boundary, gaussians):
     P, G = 40, 16
     # some particles in the wall layers; all stencils on the grid (base in [0, G - 3])
     x, v, Cm, F = random_state(P, seed=4, lo=0.05, hi=0.84)
     x[:4, 2] = 0.1  # a few on the bottom wall, moving down
     v[:4, 2] = -1.0
+    # a few whose face (half their side, 1/64, below the centre) is on the wall, their centres
+    # 0.24 cells above it: they touch it as filled particles, not as gaussians (face at the centre)
+    x[4:8, 2] = 0.1 + 0.015
+    v[4:8, 2] = -1.0
+    filled = np.ones(P, bool)
+    if gaussians:
+        filled[[0, 2, 4, 6]] = False
     label = np.arange(P) % 3
     insts = [inst(0, "fixed_corotated", "von_mises", E=2e5), inst(1, "stvk_hencky", "drucker_prager", E=5e4, nu=0.25),
              inst(2, "neo_hookean", "j_clamp", E=1e4, nu=0.4, rho=500.0)]
     vol = np.full(P, (1 / G) ** 3 / 8)
     L, dt = 0.5, 1e-4
-    table = B.instance_table(insts, label, vol, dtype=torch.float64)
+    table = B.instance_table(insts, label, vol, dtype=torch.float64, filled=filled if gaussians else None)
     grid = B.GridSpec(n_grid=G, domain_size=L, boundary=boundary)
     out = B.pseudo_step(tstate(x, v, Cm, F), dt, B.log_E_from_instances(insts), table, grid)
     E = np.array([i["E"] for i in insts])[label]
     nu = np.array([i["nu"] for i in insts])[label]
     rho = np.array([i["density"] for i in insts])[label]
     models = [(insts[k]["elasticity"], insts[k]["plasticity"], PP) for k in label]
-    want = np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=L, boundary=boundary)
+    want = np_step(x, v, Cm, F, E, nu, rho, vol, models, dt, G, L=L, boundary=boundary, filled=filled)
     for k in "xvCF":
         np.testing.assert_allclose(out[k].numpy(), want[k], rtol=1e-8, atol=1e-9, err_msg=k)
 

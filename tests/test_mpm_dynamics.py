@@ -168,6 +168,91 @@ def test_column_resting_on_the_ground_shortens_by_its_weight(ground):
     assert np.ptp(short) < 0.05 * exact  # at rest, no creep
 
 
+def _storage_face(sol) -> np.ndarray:
+    """The solver's per-particle face offsets (domain units) back in input order (-1: proxies)."""
+    rows = sol._sim_rows[sol._perm]
+    out = np.full(sol.n_input, -1.0)
+    out[rows[rows >= 0]] = sol._p_face.to_numpy()[rows >= 0] / sol.L
+    return out
+
+
+@pytest.mark.parametrize("p2g", ["atomic", "coarsened"])  # coarsened: the device re-sort permutes the rows
+def test_surface_gaussians_rest_on_the_ground_lattice_faces_too(p2g):
+    """Contact starts at each particle's face (colliders.py "Boundary placement"): half its side
+    in front of a lattice particle's centre, at the centre of a visible gaussian, which lies on
+    the material's surface.  Two blocks fall 0.3 cells onto the ground: a lattice block rests
+    with its face (its lowest centres less half a spacing) on the plane; a reconstruction-like
+    block, the same lattice plus a layer of surface carriers on its bottom face (``filled``
+    false), rests with the carriers' centres on the plane.  With the lattice rule for every
+    particle the carriers stopped half their side (0.25 cells) above it: the visible object
+    hovered."""
+    from physgs_steps.mpm.colliders import TOUCH, face_half_width
+
+    G = 32
+    dx = 1.0 / G
+    s = dx / 2
+    ground, gap = 0.2, 0.3 * dx
+
+    def lattice(x0, z0, layers):
+        axes = [np.arange(x0 + s / 2, x0 + 0.1, s), np.arange(0.4 + s / 2, 0.5, s), z0 + s * np.arange(layers)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+    a = lattice(0.2, ground + gap + s / 2, 6)              # lattice block: face gap above the ground
+    b = lattice(0.6, ground + gap + s / 2, 6)              # the same lattice ...
+    c = lattice(0.6, ground + gap, 1)                      # ... and gaussians on its bottom face
+    x = np.concatenate([a, b, c])
+    vol = np.full(len(x), s ** 3)
+    surface = np.r_[np.zeros(len(a) + len(b), bool), np.ones(len(c), bool)]
+    face = face_half_width(vol, surface)
+    m = Material("fixed_corotated", "identity", E=1e5, nu=0.3, density=1000.0, name="jelly")
+    dyn = Dynamics.from_config({"ground": {"height": ground, "friction": 0.5, "surface": "separate"}, "damping": 5.0})
+    sol = MPMSolver([m], n_grid=G, dynamics=dyn, backend="cpu", p2g=p2g, resort_every=8)
+    sol.set_particles(x, vol, np.zeros(len(x), int), face=face)
+    assert (sol._sorter is not None) == (p2g == "coarsened")
+    dt = 0.4 * dx / m.wave_speed
+    for _ in range(int(0.4 / dt)):
+        sol.substep(dt)
+    np.testing.assert_array_equal(_storage_face(sol), face.astype(np.float32))  # followed every sort
+    z = sol.get_state()["x"][:, 2]
+    lattice_face = (z[: len(a)].min() - s / 2 - ground) / dx  # cells above the ground
+    carriers = (z[len(a) + len(b):].mean() - ground) / dx
+    assert -0.05 < lattice_face < TOUCH + 0.05, lattice_face
+    assert -0.05 < carriers < TOUCH + 0.05, carriers
+    # the lattice rows above the carriers rest with their face on them
+    assert abs((z[len(a): len(a) + len(b)].min() - s / 2 - ground) / dx - carriers) < 0.05
+
+
+def test_face_offsets_follow_proxies_and_default_to_half_the_side():
+    """set_particles(face=...): the offsets reach the simulated rows in storage order; the
+    proxy particles of a free rigid body (rigid.py "Proxy particles") take half their side;
+    without ``face`` every particle gets half its side; a negative offset is an error."""
+    from physgs_steps.errors import InputError
+    from physgs_steps.mpm.colliders import face_half_width
+
+    s = 1.0 / 64
+    axes = [np.arange(0.3 + s / 2, 0.4, s)] * 3
+    cube = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    x = np.concatenate([cube, cube + [0.3, 0, 0]])
+    mat = np.r_[np.zeros(len(cube), int), np.ones(len(cube), int)]
+    vol = np.full(len(x), s ** 3)
+    surface = np.zeros(len(x), bool)
+    surface[: len(cube)] = cube[:, 2] < 0.3 + s  # the jelly's bottom layer: gaussians
+    mats = [Material("fixed_corotated", "identity", E=1e5, nu=0.3, density=1000.0, name="jelly"),
+            Material("fixed_corotated", "identity", E=1e5, nu=0.3, density=1000.0, name="box", rigid=True)]
+    sol = MPMSolver(mats, n_grid=32, backend="cpu", rigid_particles_per_cell=1)
+    sol.set_particles(x, vol, mat, face=face_half_width(vol, surface))
+    assert sol.proxy_count(1) is not None and sol.proxy_count(1) < len(cube)
+    got = _storage_face(sol)
+    np.testing.assert_array_equal(got[: len(cube)], np.where(surface[: len(cube)], 0.0, s / 2).astype(np.float32))
+    rows = sol._sim_rows[sol._perm]
+    proxies = sol._p_face.to_numpy()[rows < 0]
+    assert len(proxies) == sol.proxy_count(1) and np.all(proxies > 0)
+    sol.set_particles(x, vol, mat)
+    np.testing.assert_allclose(_storage_face(sol)[: len(cube)], s / 2, rtol=1e-6)
+    with pytest.raises(InputError, match="face"):
+        sol.set_particles(x, vol, mat, face=np.full(len(x), -1.0))
+
+
 def test_held_block_under_a_sparse_free_fringe_stays_finite():
     """A fixed cuboid holding a block under a one-particle-per-cell fringe of free material
     that the wind pushes (the ficus stem at the pot's rim): the ghost nodes' mirror samples

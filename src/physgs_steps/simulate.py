@@ -35,7 +35,7 @@ import numpy as np
 
 from .errors import ConfigError, InputError, SimulationError
 from .runtime import atomic_path, json_text, peak_rss_mb, read_json_input
-from .mpm.colliders import StaticGeometry
+from .mpm.colliders import StaticGeometry, face_half_width
 from .mpm.dynamics import Dynamics, describe_counts
 from .mpm.materials import Material
 from .mpm.rest import RestPolicy
@@ -182,7 +182,9 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
                        rigid_particles_per_cell=sim.get("rigid_particles_per_cell", RIGID_PARTICLES_PER_CELL))
     index = {l: i for i, l in enumerate(labels)}
     material = np.array([index[int(l)] for l in parts["label"]], np.int64)
-    solver.set_particles(parts["x"], parts["vol"], material)
+    # contact starts at each particle's face (colliders.py "Boundary placement"): half its side in
+    # front of a filled (lattice) particle's centre, at the centre of a gaussian (on the surface)
+    solver.set_particles(parts["x"], parts["vol"], material, face=face_half_width(parts["vol"], ~parts["filled"]))
     counts = np.bincount(material, minlength=len(materials))
     L3 = float(sim["domain_size"]) ** 3
     for k, (m, n) in enumerate(zip(materials, counts)):

@@ -33,7 +33,7 @@ def particle_stress(keyframes: str, params: dict, cfg: dict) -> dict:
     from .. import bgdo as B
 
     meta = B.read_keyframes_meta(keyframes)
-    table = B.instance_table(params["instances"], meta["label"], meta["vol"])
+    table = B.instance_table(params["instances"], meta["label"], meta["vol"], filled=meta.get("filled"))
     grid = B.grid_from_config(cfg, meta.get("sim_config"))
     log_E = B.log_E_from_instances(params["instances"])
     samples = []

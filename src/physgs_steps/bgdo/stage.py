@@ -26,7 +26,8 @@ def key_frame_indices(key_frames, n_frames: int) -> list[int]:
 def read_keyframes_meta(path: str) -> dict:
     """Particles and key-frame index of a forward.h5 (CONTRACTS.md) without loading the states.
 
-    Returns {"label" [P] int64, "vol" [P] f32, "frames": [(group name, frame, time, dt,
+    Returns {"label" [P] int64, "vol" [P] f32, "filled" [P] bool or None (files without it),
+    "frames": [(group name, frame, time, dt,
     substitute_for)] sorted by frame, "params": dict or None, "sim_config": dict or None,
     "stats": dict or None}. ``substitute_for`` lists the key frames an unstable forward run
     could not reach and for which this (last stable) frame stands in.
@@ -52,6 +53,11 @@ def read_keyframes_meta(path: str) -> dict:
             raise InputError(path, f"particles/vol has shape {vol.shape}, expected ({P},)")
         if not np.all(np.isfinite(vol)) or np.any(vol <= 0):
             raise InputError(path, "particles/vol must be finite and > 0")
+        filled = None
+        if "particles/filled" in f:
+            filled = np.asarray(f["particles/filled"][...]).astype(bool)
+            if filled.shape != (P,):
+                raise InputError(path, f"particles/filled has shape {filled.shape}, expected ({P},)")
         if "keyframes" not in f or len(f["keyframes"]) == 0:
             raise InputError(path, "has no key frames (group 'keyframes' is missing or empty)")
         frames = []
@@ -73,7 +79,7 @@ def read_keyframes_meta(path: str) -> dict:
             sub = [] if sub is None else [int(v) for v in np.atleast_1d(sub)]
             frames.append((name, int(g.attrs["frame"]), float(g.attrs["time"]), dt, sub))
         frames.sort(key=lambda t: t[1])
-        meta = {"label": label, "vol": vol, "frames": frames}
+        meta = {"label": label, "vol": vol, "filled": filled, "frames": frames}
         for a in ("params", "sim_config", "stats"):
             raw = f.attrs.get(a)
             try:
@@ -176,8 +182,11 @@ def run(inputs: dict, outputs: dict, cfg: dict, log) -> dict:
     params = _read_params(inputs["params"])
     meta = read_keyframes_meta(inputs["keyframes"])
     rec_sim0 = (meta.get("sim_config") or {}).get("sim") or cfg.get("sim") or {}
+    # the gaussians' faces at their centres, the filled particles' half their side in front (wall
+    # contact, as the forward run's solver: simulate.build_solver)
     full = instance_table(params["instances"], meta["label"], meta["vol"], dtype=dtype, device=device,
-                          source=inputs["params"], rigid_bodies=bool(rec_sim0.get("rigid_bodies", True)))
+                          source=inputs["params"], rigid_bodies=bool(rec_sim0.get("rigid_bodies", True)),
+                          filled=meta["filled"])
     # fixed instances are static geometry: not in the MPM, so not in the pseudo step either
     fixed_k = [k for k in range(full.n_instances) if full.fixed and full.fixed[k]]
     keep = np.flatnonzero(~np.isin(meta["label"], fixed_k))

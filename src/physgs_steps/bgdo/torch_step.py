@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .. import materials_kb
-from ..mpm.colliders import COVER, FRINGE_SOFT, FRONT_BAND, GHOST_BAND, MIRROR_MASS, TOUCH
+from ..mpm.colliders import COVER, FRINGE_SOFT, FRONT_BAND, GHOST_BAND, MIRROR_MASS, TOUCH, face_half_width
 from ..mpm.material import FLIP_RATIO
 
 # ----------------------------------------------------------------------------- model names
@@ -364,6 +364,8 @@ class InstanceTable:
     nu, density  # [K]
     elasticity, plasticity: K canonical model names
     plastic: PlasticParams with [K] tensors
+    face  # [P] or None: how far in front of its centre each particle's face lies, domain units
+    (where wall contact starts; colliders.face_half_width); None: half the cube root of its volume
     """
 
     label: torch.Tensor
@@ -376,6 +378,7 @@ class InstanceTable:
     names: list = field(default_factory=list)
     rigid: list = field(default_factory=list)   # K bools: instance moves as one rigid body
     fixed: list = field(default_factory=list)   # K bools: static geometry (callers leave its rows out)
+    face: torch.Tensor | None = None             # [P] domain units (None: 0.5 vol^(1/3), lattice material)
 
     def is_rigid(self, k: int) -> bool:
         return bool(self.rigid[k]) if self.rigid else False
@@ -387,14 +390,16 @@ class InstanceTable:
     def select(self, idx: torch.Tensor) -> "InstanceTable":
         """The same instances with only the particles ``idx``  # [P'] int64."""
         return InstanceTable(self.label[idx], self.vol[idx], self.nu, self.density, list(self.elasticity),
-                             list(self.plasticity), self.plastic, list(self.names), list(self.rigid), list(self.fixed))
+                             list(self.plasticity), self.plastic, list(self.names), list(self.rigid), list(self.fixed),
+                             None if self.face is None else self.face[idx])
 
     def to(self, device) -> "InstanceTable":
         p = self.plastic
         return InstanceTable(self.label.to(device), self.vol.to(device), self.nu.to(device), self.density.to(device),
                              list(self.elasticity), list(self.plasticity),
                              PlasticParams(*(getattr(p, k).to(device) for k in PLASTIC_KEYS)),
-                             list(self.names), list(self.rigid), list(self.fixed))
+                             list(self.names), list(self.rigid), list(self.fixed),
+                             None if self.face is None else self.face.to(device))
 
     @property
     def fractures(self) -> list:
@@ -407,11 +412,15 @@ _PLASTIC_DEFAULTS = {"yield_stress": math.inf, "friction_angle": 30.0, "cohesion
 
 
 def instance_table(instances: list[dict], label, vol, dtype=torch.float32, device="cpu", source: str = "params.json",
-                   rigid_bodies: bool = True) -> InstanceTable:
+                   rigid_bodies: bool = True, filled=None) -> InstanceTable:
     """Build the table from params.json ``instances`` (sorted by ``label``) and particle arrays.
 
     label  # [P] int instance id per particle (0..K-1)
     vol  # [P] particle volume, domain units^3
+    filled  # [P] bool or None: particles.h5 ``filled``; a row that is not filled is a visible
+    gaussian on the material's surface, its face at its centre (``face`` 0; colliders.py
+    "Boundary placement", as the Taichi solver built by simulate.build_solver); None: every row
+    is lattice material (face half its volume's cube root in front of its centre)
     rigid_bodies: honour the instances' ``rigid``/``fixed`` flags (sim.rigid_bodies; false is
     the ``no_rigid`` ablation: free rigid instances are deformable, fixed ones stay static).
     """
@@ -459,11 +468,17 @@ def instance_table(instances: list[dict], label, vol, dtype=torch.float32, devic
         if pl[-1] == "von_mises" and not math.isfinite(pvals["yield_stress"][-1]):
             raise InputError(source, f"{where}: von_mises plasticity needs plasticity_params.yield_stress (Pa)")
     t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
+    face = None
+    if filled is not None:
+        filled = np.asarray(filled, bool)
+        if filled.shape != label_np.shape:
+            raise InputError(source, f"filled has shape {filled.shape}, expected {label_np.shape} (one flag per particle)")
+        face = t(face_half_width(vol, ~filled))
     return InstanceTable(
         label=torch.as_tensor(label_np.astype(np.int64), device=device),
         vol=t(vol), nu=t(nu), density=t(rho), elasticity=el, plasticity=pl,
         plastic=PlasticParams(*(t(pvals[k]) for k in PLASTIC_KEYS)),
-        names=names, rigid=rigid, fixed=fixed,
+        names=names, rigid=rigid, fixed=fixed, face=face,
     )
 
 
@@ -541,7 +556,7 @@ def plastic_projection(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, tab
 
 
 def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=None, body=None, cover=None,
-             flip=None):
+             flip=None, p_face=None):
     """One MLS-MPM/APIC substep after the stress (CONTRACTS.md steps 1-4, without plasticity).
 
     All in SI: x  # [P, 3] m, v  # [P, 3] m/s at the state's time, C  # [P, 3, 3] 1/s,
@@ -556,6 +571,8 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     (:func:`_rigid_grid`, the Taichi solver's coupling) and rigid rows read their body's field.
     flip  # [P] or None: each row's FLIP share (CONTRACTS step 4, ``materials.FLIP_RATIO``; 0 for
     rigid rows): the velocity gains flip (v - the pre-force grid field at x).
+    p_face  # [P] m or None: how far in front of its centre each particle's face lies (wall contact
+    starts there; colliders.face_half_width); None: half the cube root of p_vol (lattice material).
     returns x, v, C, F_trial (each like the input)
     """
     P = x.shape[0]
@@ -589,10 +606,12 @@ def mpm_step(x, v, C, F, tau, p_mass, p_vol, dt: float, grid: GridSpec, rigid=No
     if body is not None and bool((body >= 0).any()):
         gv, field, covered = _rigid_grid(gv, grid_m, uniq, inv.reshape(P, 27), weight, mom, p_mass, body, cover, G,
                                          dx, dt, g)
-    # a wall acts on the nodes of (deformable) particles that touch it: a particle's face (half its
-    # volume's cube root beyond its centre) within TOUCH cells of it (colliders.py)
+    # a wall acts on the nodes of (deformable) particles that touch it: a particle's face (p_face
+    # beyond its centre: half its volume's cube root, 0 on the surface) within TOUCH cells of it (colliders.py)
     phi_p = torch.stack([sgn * (x[:, a] - pos) for a, sgn, pos in _wall_planes(G, dx, grid)], -1).min(-1).values
-    touch = phi_p - 0.5 * torch.pow(p_vol, 1.0 / 3.0) < TOUCH * dx
+    if p_face is None:
+        p_face = 0.5 * torch.pow(p_vol, 1.0 / 3.0)
+    touch = phi_p - p_face < TOUCH * dx
     if rigid is not None:
         touch = touch & ~rigid
     engaged = torch.zeros(M, dtype=torch.bool, device=dev)
@@ -832,8 +851,9 @@ def pseudo_step(state: dict, dt: float, log_E: torch.Tensor, table: InstanceTabl
         cover = torch.stack([COVER * table.density[k] * dx ** 3 for k in bodies]).to(F.dtype)
     ratio = torch.as_tensor([0.0 if table.is_rigid(k) else FLIP_RATIO.get(table.plasticity[k], 0.0)
                              for k in range(table.n_instances)], dtype=F.dtype, device=F.device)
+    p_face = None if table.face is None else table.face * L
     x, v, C, F_trial = mpm_step(x0, state["v"] * L, state["C"], F, tau, p_mass, p_vol, dt, grid, rigid, body, cover,
-                                ratio[table.label])
+                                ratio[table.label], p_face)
     F_new = plastic_projection(F_trial, mu, lam, table)
     idx = _fracturing(table, F.device)
     if idx.numel():

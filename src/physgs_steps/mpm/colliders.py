@@ -48,9 +48,13 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
   dx), and a block set on a rough incline fell for a frame before it touched, sliding free
   meanwhile, and its landing braked it by about two thirds of mu times the landing's normal
   impulse (the bottom nodes' tangential velocity stops at zero): it slid 6 % too far at
-  n_grid 32, 5.5 % at 48, not shrinking with dx.  For a
-  reconstruction, whose surface gaussians lie on its surface, the surface gaussians now rest
-  half their spacing above the plane.  (``TOUCH`` is a
+  n_grid 32, 5.5 % at 48, not shrinking with dx.  The face offset is per particle
+  (:func:`face_half_width`; ``MPMSolver.set_particles(face=...)``): half the side for
+  material filled on a lattice, 0 for the carriers of a reconstruction's visible gaussians
+  (particles.h5 ``filled`` false), which lie ON its surface: their centre is the material's
+  face.  With half their side they stopped half a particle spacing above the plane (the bear's
+  lowest visible row 0.32 cells above the ground at grid 32, about 1 cm, 0.09 with the
+  centres).  (``TOUCH`` is a
   tenth of a cell, not zero: a resting particle bobbing by a rounding error must not switch
   its support off for a substep, which lets the lowest layers creep onto the plane.)  Such a
   node with mass and ``-GHOST_BAND dx < phi < FRONT_BAND dx`` gets a velocity on the line
@@ -110,7 +114,8 @@ the level sets above.  Two treatments make the boundary sit at ``phi = 0`` whate
 * particles: after G2P a deformable particle with ``phi < 0`` is moved back onto the surface
   (``x -= phi n``) and its inward normal velocity removed (sticky: ``v = v_c``).  A body's
   outermost material rests on the surface, within ``TOUCH`` (a tenth of a cell) of it: contact
-  starts there (bench_boundaries.py); its outermost centres half a particle's side above.  A
+  starts there (bench_boundaries.py); its outermost lattice centres half a particle's side
+  above, its surface carriers on it.  A
   cuboid is a holding region, not an obstacle: a particle inside an active cuboid moves with
   the cuboid and strains with the velocity field the ghost nodes extend into the box, so the
   stress stays continuous across the face and the free material is clamped exactly at the
@@ -132,7 +137,7 @@ import numpy as np
 from ..errors import ConfigError, InputError
 
 SURFACE_KIND = {"sticky": 0.0, "slip": 1.0, "separate": 2.0}
-TOUCH = 0.1          # cells: a particle whose face (half its side in front of its centre) is this close to an obstacle (or behind it) touches it
+TOUCH = 0.1          # cells: a particle whose face (face_half_width in front of its centre) is this close to an obstacle (or behind it) touches it
 GHOST_BAND = 2.0     # nodes up to this many cells behind a surface get ghost velocities
 FRONT_BAND = 1.0     # cells: engaged nodes this close in front of an obstacle carry its reaction
 HELD_REACH = 1.5     # cells: a held particle's stencil reaches nodes less than this far in front of its holding region (cuboid mirrors lie beyond it)
@@ -179,6 +184,21 @@ class StaticGeometry:
         if not (np.isfinite(self.spacing) and self.spacing > 0):
             raise ConfigError(f"static geometry '{self.name}': spacing", f"must be > 0, got {self.spacing!r}")
         self.spacing = float(self.spacing)
+
+
+def face_half_width(vol: np.ndarray, surface: np.ndarray | None = None) -> np.ndarray:
+    """[P] float64: how far in front of each particle's centre its face lies ("Boundary
+    placement"), in the units of ``vol``'s cube root: half the side of a cube of its volume
+    (``0.5 vol^(1/3)``; material filled on a lattice), 0 where ``surface`` [P] bool is set (a
+    reconstruction's visible gaussians, particles.h5 ``filled`` false: they lie on the
+    material's surface)."""
+    half = 0.5 * np.cbrt(np.asarray(vol, np.float64))
+    if surface is None:
+        return half
+    surface = np.asarray(surface, bool)
+    if surface.shape != half.shape:
+        raise InputError("surface", f"expected shape {half.shape} (one flag per particle), got {surface.shape}")
+    return np.where(surface, 0.0, half)
 
 
 def estimate_spacing(points: np.ndarray) -> float:

@@ -12,6 +12,7 @@ Arrays (SI units inside the solver: metres, m/s, s, Pa):
     x, v [P] vec3         position, velocity
     C, F, tau [P] mat3    APIC affine matrix, elastic deformation gradient, Kirchhoff stress of F
     p_vol, p_mass [P]     particle volume (m^3) and mass (kg)
+    p_face [P]            how far in front of its centre the particle's face lies (m; colliders.face_half_width)
     ep [P]                accumulated inelastic strain of tearing materials (materials.Fracture)
     mat [P] int           material (instance) index into mparams / mcombo
     act_bits [P] int      particle-action membership bits (see dynamics.py)
@@ -496,9 +497,10 @@ def build(spec: Spec) -> SimpleNamespace:
     @ti.func
     def _touching(xp, half, t, dx, L, wall, dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
                   lvl_rows: ti.template()):
-        """1 when the particle at xp, a cube of material of side 2 ``half`` (its volume's cube
-        root), touches (or is behind) an active obstacle: its face within TOUCH cells of it
-        (colliders.py "Boundary placement")."""
+        """1 when the particle at xp, whose face lies ``half`` in front of its centre (p_face:
+        half its volume's cube root for lattice material, 0 for surface carriers), touches (or
+        is behind) an active obstacle: its face within TOUCH cells of it (colliders.py
+        "Boundary placement")."""
         touch = 0
         for s in range(n_obst):
             active, phi, n, vc, kind, fric = col.slot(s, xp, ti.Vector([0, 0, 0]), False, t, dx, L, wall, dyn,
@@ -509,7 +511,7 @@ def build(spec: Spec) -> SimpleNamespace:
 
     @ti.func
     def _p2g_prepare(p, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
-                     p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                     p_vol: ti.template(), p_face: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
                      act_bits: ti.template(), mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(),
                      lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L,
                      wall):
@@ -528,7 +530,7 @@ def build(spec: Spec) -> SimpleNamespace:
                 held, _ = _held(xp, t, dyn)
         touch = 0
         if rigid == 0 and held == 0:
-            touch = _touching(xp, 0.5 * ti.pow(p_vol[p], 1.0 / 3.0), t, dx, L, wall, dyn, lvl_phi, lvl_id, lvl_rows)
+            touch = _touching(xp, p_face[p], t, dx, L, wall, dyn, lvl_phi, lvl_id, lvl_rows)
         base, fx, w = _stencil(xp, inv_dx, G, err)
         vp = v[p]
         if ti.static(has_actions):
@@ -544,12 +546,12 @@ def build(spec: Spec) -> SimpleNamespace:
 
     @ti.func
     def _p2g_particle(p, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
-                      p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                      p_vol: ti.template(), p_face: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
                       act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
                       grid_r: ti.template(), grid_rm: ti.template(), grid_rv: ti.template(), mbody: ti.template(),
                       dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template(),
                       err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
-        base, fx, w, mv, affine, mass, touch, owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+        base, fx, w, mv, affine, mass, touch, owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo,
                                                                    act_bits, mbody, dyn, lvl_phi, lvl_id, lvl_rows,
                                                                    err, dt, t, dx, inv_dx, G, L, wall)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
@@ -579,7 +581,7 @@ def build(spec: Spec) -> SimpleNamespace:
 
     @ti.func
     def _p2g_runs(p0, p1, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
-                  p_vol: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
+                  p_vol: ti.template(), p_face: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
                   act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
                   mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
                   lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L, wall):
@@ -598,7 +600,7 @@ def build(spec: Spec) -> SimpleNamespace:
             touch = 0
             if p < p1:
                 # no rigid bodies here (the solver uses the atomic transfer with them): owner is 0
-                base, fx, _w, mv, affine, mass, touch, _owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                base, fx, _w, mv, affine, mass, touch, _owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo,
                                                                        act_bits, mbody, dyn, lvl_phi, lvl_id,
                                                                        lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
             if not P2G.same_base(base, cur):
@@ -615,8 +617,8 @@ def build(spec: Spec) -> SimpleNamespace:
                 touch_run = ti.max(touch_run, touch)
 
     @ti.kernel
-    def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1,
-                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
+    def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1,
+                act_bits: I1, grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
                 mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32,
                 t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1,
                 part: ti.template()):
@@ -688,7 +690,7 @@ def build(spec: Spec) -> SimpleNamespace:
             # P2G
             if ti.static(coarsened and private_grid):
                 for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
-                    _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                    _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo,
                               act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
                               inv_dx, G, L, wall)
             elif ti.static(coarsened and run == P2G.CELL):
@@ -696,21 +698,21 @@ def build(spec: Spec) -> SimpleNamespace:
                     p0 = cell_start[k]
                     p1 = cell_start[k + 1]
                     if p1 > p0:
-                        _p2g_runs(p0, p1, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                        _p2g_runs(p0, p1, 0, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                                   mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
             elif ti.static(coarsened):
                 for r in range((P + run - 1) // run):  # one thread per `run` consecutive particles
-                    _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_mass, mat, mcombo,
+                    _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo,
                               act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
                               inv_dx, G, L, wall)
             elif ti.static(private_grid):
                 for c in range(n_chunks):  # parallel over chunks, serial inside a chunk
                     for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
-                        _p2g_particle(p, c, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                        _p2g_particle(p, c, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                                       grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
             else:
                 for p in range(P):
-                    _p2g_particle(p, 0, x, v, C, tau, p_vol, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                    _p2g_particle(p, 0, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                                   grid_r, grid_rm, grid_rv, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
             if ti.static(any_flip):
                 # FLIP materials (materials.FLIP_RATIO): the momenta m (v + C dpos) alone, before the

@@ -186,9 +186,9 @@ def exclusive_scan(a) -> None:
 
 @ti.kernel
 def _scatter(dest: I1, key: I1, start: I1,
-             x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_mass: S1, mat: I1, act_bits: I1, order: I1,
-             x2: V1, v2: V1, C2: M1, F2: M1, tau2: M1, ep2: S1, p_vol2: S1, p_mass2: S1, mat2: I1, act_bits2: I1,
-             order2: I1):
+             x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1, act_bits: I1,
+             order: I1, x2: V1, v2: V1, C2: M1, F2: M1, tau2: M1, ep2: S1, p_vol2: S1, p_face2: S1, p_mass2: S1,
+             mat2: I1, act_bits2: I1, order2: I1):
     """Particle p goes to slot start[key[p]] + dest[p] (dest holds its rank within the cell)."""
     for p in range(x.shape[0]):
         q = start[key[p]] + dest[p]
@@ -199,6 +199,7 @@ def _scatter(dest: I1, key: I1, start: I1,
         tau2[q] = tau[p]
         ep2[q] = ep[p]
         p_vol2[q] = p_vol[p]
+        p_face2[q] = p_face[p]
         p_mass2[q] = p_mass[p]
         mat2[q] = mat[p]
         act_bits2[q] = act_bits[p]
@@ -206,8 +207,8 @@ def _scatter(dest: I1, key: I1, start: I1,
 
 
 # the per-particle arrays the sort permutes (MPMSolver attribute names), in _scatter's order
-PERMUTED = ("x", "v", "C", "F", "tau", "ep", "_p_vol", "_p_mass", "_mat", "_act_bits", "_order")
-PERMUTED_TYPES = (vec3, vec3, mat3, mat3, mat3, ti.f32, ti.f32, ti.f32, ti.i32, ti.i32, ti.i32)
+PERMUTED = ("x", "v", "C", "F", "tau", "ep", "_p_vol", "_p_face", "_p_mass", "_mat", "_act_bits", "_order")
+PERMUTED_TYPES = (vec3, vec3, mat3, mat3, mat3, ti.f32, ti.f32, ti.f32, ti.f32, ti.i32, ti.i32, ti.i32)
 
 
 class DeviceSort:
@@ -245,7 +246,7 @@ class DeviceSort:
             spare[n] = a
 
     def nbytes(self) -> int:
-        return 4 * (2 * self.P + self.G ** 3 + 1) + (4 * 39 * self.P if self.spare is not None else 0)
+        return 4 * (2 * self.P + self.G ** 3 + 1) + (4 * 40 * self.P if self.spare is not None else 0)
 
 
 def sorted_by_base(x: np.ndarray, dx: float, G: int) -> bool:

@@ -6,6 +6,7 @@ Usage (arrays in DOMAIN UNITS, as stored in HDF5 and used by the torch pseudo-st
     s = MPMSolver([preset("jelly", name="bear")], n_grid=32, domain_size=1.0,
                   dynamics=Dynamics.free(), backend="cpu")
     s.set_particles(x, vol, material)        # x [P,3] in [0,1], vol [P] (domain units^3), material [P] int
+                                             # (face=[P]: per-particle face offset, colliders.face_half_width)
     s.set_state(x, v, C, F)                  # optional: any state (v in domain units/s)
     s.substep(dt)                            # one step of dt seconds
     s.substeps(n, dt)                        # n of them (ti.graph batches: fewer host costs on CUDA)
@@ -140,7 +141,7 @@ class MPMSolver:
 
     # ------------------------------------------------------------------ set-up
     def set_particles(self, x: np.ndarray, vol: np.ndarray, material: np.ndarray,
-                      velocity: np.ndarray | None = None) -> None:
+                      velocity: np.ndarray | None = None, face: np.ndarray | None = None) -> None:
         """Load particles at rest (F = I, C = 0) with their initial velocities.
 
         The particles of a fixed rigid instance do not enter the MPM: they become static
@@ -155,6 +156,12 @@ class MPMSolver:
             material: [P] int, index into ``materials``.
             velocity: [P, 3] initial velocities in m/s; default: each material's ``velocity``
                 then the dynamics' ``initial_velocity`` overrides.
+            face: [P] how far in front of its centre each particle's face lies, domain units
+                (>= 0; where contact with an obstacle starts, colliders.py "Boundary
+                placement"); default ``colliders.face_half_width(vol)``, half the side of a
+                cube of its volume (lattice material); 0 for particles on the material's
+                surface (a reconstruction's visible gaussians).  Proxy particles of rigid
+                bodies take the default (rigid particles do not use it).
         """
         x = _as_array(x, np.float64, (None, 3), "x")
         P = len(x)
@@ -166,6 +173,9 @@ class MPMSolver:
             raise InputError("particles", f"material index out of range 0..{len(self.materials) - 1}")
         if np.any(vol <= 0):
             raise InputError("particles", "particle volumes must be > 0")
+        face = colliders.face_half_width(vol) if face is None else _as_array(face, np.float64, (P,), "face")
+        if np.any(face < 0):
+            raise InputError("face", "particle face offsets must be >= 0")
         fixed_k = [k for k, m in enumerate(self.materials) if m.fixed]
         fixed = np.isin(material, fixed_k)
         if fixed.all():
@@ -194,6 +204,7 @@ class MPMSolver:
         ms = np.r_[material[sim_rows], pmat]
         self._mat_pre = ms
         vs = np.r_[vol[sim_rows], pvol]
+        fs = np.r_[face[sim_rows], colliders.face_half_width(pvol)]
         self.bound = BoundDynamics(**{**bound.__dict__, "act_bits": np.r_[bound.act_bits[sim_rows], pact]})
         perm = self._sort_order(xs) if self.sort_particles else np.arange(len(xs))
         Ps = len(xs)
@@ -206,6 +217,7 @@ class MPMSolver:
         p_vol = vs[perm] * self.L ** 3
         density = np.array([m.density for m in self.materials])[ms[perm]]
         self._p_vol.from_numpy(p_vol.astype(np.float32))
+        self._p_face.from_numpy((fs[perm] * self.L).astype(np.float32))
         p_mass = (p_vol * density).astype(np.float32)
         self._p_mass.from_numpy(p_mass)
         self._dyn = _ndarray_from(self.bound.table, ti.f32)
@@ -397,6 +409,7 @@ class MPMSolver:
         self.tau = ti.ndarray(K.mat3, P)
         self.ep = ti.ndarray(ti.f32, P)
         self._p_vol = ti.ndarray(ti.f32, P)
+        self._p_face = ti.ndarray(ti.f32, P)  # m: the face's distance in front of the centre (contact)
         self._p_mass = ti.ndarray(ti.f32, P)
         self._mat = ti.ndarray(ti.i32, P)
         self._act_bits = ti.ndarray(ti.i32, P)
@@ -608,7 +621,7 @@ class MPMSolver:
     def _substep_args(self, dt: float, damp: float) -> tuple:
         """The substep kernel's arguments but ``part`` (kernels.build's ``substep``)."""
         b = self.bound
-        return (self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_mass, self._mat,
+        return (self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_face, self._p_mass, self._mat,
                 self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_o, self.grid_r,
                 self.grid_rm, self.grid_rv, self._mbody, self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
                 self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
@@ -734,14 +747,14 @@ class MPMSolver:
 
     def _restore_order(self, generation: int, perm: np.ndarray) -> None:
         """After a backup's state arrays came back: if the particles were re-sorted since, put
-        the arrays the backup does not hold (mass, volume, material, action bits) into the
+        the arrays the backup does not hold (mass, volume, face, material, action bits) into the
         backup's storage order ``perm`` too."""
         if generation == self.sort_generation:
             return
         slot = np.empty_like(self._perm)
         slot[self._perm] = np.arange(len(slot))
         src = slot[perm]  # current slot of each backup slot's particle
-        for name in ("_p_vol", "_p_mass", "_mat", "_act_bits"):
+        for name in ("_p_vol", "_p_face", "_p_mass", "_mat", "_act_bits"):
             arr = getattr(self, name)
             arr.from_numpy(arr.to_numpy()[src])
         self._order.from_numpy(perm.astype(np.int32))
@@ -798,7 +811,7 @@ class MPMSolver:
     def device_bytes(self) -> int:
         """Bytes of the solver's arrays (particles, grid, tables, backup)."""
         P, G = self.n_particles, self.n_grid
-        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1 + 1)
+        per_particle = 4 * (3 + 3 + 9 + 9 + 9 + 1 + 1 + 1 + 1 + 1 + 1 + 1)
         backup = 4 * (3 + 3 + 9 + 9 + 9 + 1) * P if self._backup is not None else 0
         sort = self._sorter.nbytes() if self._sorter is not None else 0
         owner = 20 * self.n_chunks * G ** 3 if RIGID_KEY in self.combos else 0  # grid_r, grid_rm, grid_rv
