@@ -10,7 +10,9 @@ warm-up substeps (kernel compilation, the start of the motion) it times ``subste
 change the cost).  Prints milliseconds a substep and particle-substeps/s; with ``--profile``
 Taichi's kernel profiler (it synchronises after every task, so the wall time grows) lists the
 tasks of every kernel a substep and the wall time not spent in kernels (the host: Python and
-launches).  ``--threads N`` runs Taichi and the private P2G grids on N threads.
+launches).  ``--threads N`` runs Taichi and the private P2G grids on N threads.  It also prints
+the process CPU time a substep (all threads): on a loaded machine the wall time follows the
+other load, the CPU time mostly the work (compare before/after with it, alternating runs).
 
 Measured on the 2-core CPU machine (duck_stone: 4,306 particles, 2,684 of them one free rigid
 body), one thread, base b6562d3 / branch cpu_substep in one session: kernels 7.81 / 5.95 ms a
@@ -55,14 +57,17 @@ ti.sync()
 if a.profile:
     ti.profiler.clear_kernel_profiler_info()
 t = time.perf_counter()
+c = time.process_time()
 for _ in range(a.substeps):
     sol.substep(dt)
 ti.sync()
 el = time.perf_counter() - t
+cpu = time.process_time() - c
 n = a.substeps
 print(f"{a.scene}: {sol.n_particles} particles ({sol.rigid.n_particles if sol.rigid else 0} rigid), grid {sol.n_grid}, "
       f"{sol.n_chunks} thread(s): {n} substeps {1e3 * el / n:.3f} ms each, {sol.n_particles * n / el:.3g} "
-      f"particle-substeps/s")
+      f"particle-substeps/s; CPU time {1e3 * cpu / n:.3f} ms each (all threads: the work, less sensitive than the "
+      f"wall time to other load on a shared machine)")
 if a.profile:
     from taichi.profiler.kernel_profiler import get_default_kernel_profiler
 
