@@ -19,7 +19,8 @@ One substep from a given state (the cross-check with the torch pseudo-step)::
     mats = [Material("fixed_corotated", "identity", E=1e5, nu=0.3, density=1000.0, name="bear")]
     s = MPMSolver(mats, n_grid=32, domain_size=1.0, backend="cpu",
                   dynamics=Dynamics.free(gravity=(0, 0, -9.8), boundary="slip"))  # gravity + walls only
-    s.set_particles(x, vol, material)   # x [P,3], vol [P], material [P] int (index into mats)
+    s.set_particles(x, vol, material)   # x [P,3], vol [P], material [P] int (index into mats);
+                                        # face=colliders.face_half_width(vol, ~filled): gaussians' contact at their centre
     s.set_state(x, v, C, F)             # [P,3], [P,3], [P,3,3], [P,3,3]; stresses recomputed from F
     s.substep(dt)                       # dt in seconds
     st = s.get_state()                  # {"x","v","C","F"}: float32, same row order as given
