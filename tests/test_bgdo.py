@@ -498,6 +498,42 @@ def test_pseudo_step_matches_taichi():
     assert not bad, "; ".join(bad)
 
 
+def test_pseudo_step_matches_taichi_at_the_floor_with_gaussians():
+    """Particles 0.225 cells above the bottom wall, visible gaussians (face at their centre: not
+    touching) on one side, filled particles (face half their side, 0.25 cells, in front of it:
+    touching) on the other, and some on the wall: the Taichi solver given the
+    per-particle faces (MPMSolver.set_particles(face=...), as simulate.build_solver) and the
+    torch pseudo-step given ``filled`` (instance_table, as the BGDO stage) take the same
+    particles as touching the wall.  With every face at half the side the torch step differs."""
+    from physgs_steps.mpm.colliders import face_half_width
+
+    Dynamics, Material, MPMSolver = _taichi_solver()
+    P, G, dt = 160, 16, 2e-4
+    x, v, Cm, F = random_state(P, seed=9, spread=0.02)
+    s = 1 / 32
+    x[:, 2] = 0.1 + 0.45 * s  # centres 0.225 cells above the wall
+    x[:8, 2] = 0.1
+    v[:, 2] = -0.5
+    vol = np.full(P, s ** 3)
+    filled = x[:, 0] > 0.5
+    label = np.zeros(P, int)
+    insts = [inst(0, "fixed_corotated", "identity", E=1e5)]
+    m = Material("fixed_corotated", "identity", E=1e5, nu=0.3, density=1000.0)
+    sol = MPMSolver([m], n_grid=G, domain_size=1.0, dynamics=Dynamics.free(), backend="cpu")
+    sol.set_particles(x, vol, label, face=face_half_width(vol, ~filled))
+    sol.set_state(x, v, Cm, F)
+    sol.substep(dt)
+    ref = sol.get_state()
+    outs = [B.pseudo_step(tstate(x, v, Cm, F, dtype=torch.float32), dt, B.log_E_from_instances(insts),
+                          B.instance_table(insts, label, vol, filled=f), B.GridSpec(G)) for f in (filled, None)]
+    errs = []
+    for out in outs:
+        errs.append({q: float(np.abs(out[q].detach().numpy() - ref[q]).max()) / max(float(np.abs(ref[q]).max()), 1.0)
+                     for q in "xvCF"})
+    assert all(e <= 2e-5 for e in errs[0].values()), errs[0]
+    assert errs[1]["v"] > 1e-3, errs[1]  # the faces matter here
+
+
 def test_pseudo_step_matches_taichi_with_a_rigid_body():
     """One substep with a deformable instance touching a free rigid body (rotated, spinning,
     moving): the torch rigid projection (momentum and angular momentum of the G2P velocities,
