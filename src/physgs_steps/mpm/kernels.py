@@ -617,8 +617,8 @@ def build(spec: Spec) -> SimpleNamespace:
                 touch_run = ti.max(touch_run, touch)
 
     @ti.kernel
-    def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1,
-                act_bits: I1, grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
+    def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1, act_bits: I1,
+                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
                 mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32,
                 t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1,
                 part: ti.template()):
