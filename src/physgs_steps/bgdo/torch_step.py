@@ -642,8 +642,8 @@ def _rigid_grid(gv, grid_m, uniq, inv, weight, mom, p_mass, body, cover, G: int,
     gv  # [M, 3] node velocities (gravity applied), grid_m  # [M], uniq  # [M] node keys,
     inv  # [P, 27] node of each stencil entry, weight  # [P, 27], mom  # [P, 27, 3] the momenta
     transferred, body  # [P] long (-1: deformable), cover  # [B] kg.
-    returns gv  # [M, 3] (covered nodes: the body's field; fringe nodes: the soft material's
-    own velocity), field  # [M, 3] (the owning body's field; gv elsewhere) and covered  # [M] bool."""
+    returns gv  # [M, 3] (the body's nodes: the soft material's own velocity, the body's field
+    where there is none), field  # [M, 3] (the owning body's field; gv elsewhere) and covered  # [M] bool."""
     r = body >= 0
     idx = inv[r].reshape(-1)
     M = gv.shape[0]
@@ -655,8 +655,10 @@ def _rigid_grid(gv, grid_m, uniq, inv, weight, mom, p_mass, body, cover, G: int,
                      torch.zeros_like(rmom))
     covered = (own > 0) & (rm >= cover[(own - 1).clamp(min=0)])
     xn = torch.stack([uniq // (G * G), (uniq // G) % G, uniq % G], -1).to(gv.dtype) * dx  # [M, 3]
-    m_n = torch.where(covered, grid_m, rm)
-    v_n = torch.where(covered[:, None], gv, rv)
+    # the body's field from its own mass and momentum alone (the soft material on its nodes keeps
+    # its own velocity; the Taichi solver's contact of soft material with the body, its level
+    # set and reaction, kernels.py _body_contact, is not mirrored, as the bodies' contacts)
+    m_n, v_n = rm, rv
     field = gv.clone()
     for b in range(int(cover.shape[0])):
         sel = own == b + 1
@@ -675,8 +677,8 @@ def _rigid_grid(gv, grid_m, uniq, inv, weight, mom, p_mass, body, cover, G: int,
         field = torch.where(sel[:, None], Pb / Mb + torch.cross(w.expand_as(rel), rel, dim=-1), field)
     soft = grid_m - rm
     own_soft = (grid_m[:, None] * gv - rm[:, None] * rv) / torch.where(soft > 0, soft, torch.ones_like(soft))[:, None]
-    fringe_v = torch.where((soft > FRINGE_SOFT * grid_m)[:, None], own_soft, field)
-    gv = torch.where(covered[:, None], field, torch.where((own > 0)[:, None], fringe_v, gv))
+    own_v = torch.where((soft > FRINGE_SOFT * grid_m)[:, None], own_soft, field)
+    gv = torch.where((own > 0)[:, None], own_v, gv)
     return gv, field, covered
 
 

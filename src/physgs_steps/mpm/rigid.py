@@ -6,45 +6,58 @@ one body.
 
 Coupling
 --------
-On the grid each body is a moving collider with full impulse exchange (kernels.py, after the
-grid velocities and before the boundaries; docs/CONTRACTS.md step 3).  A node where the body's
-particles transfer is *covered* where their mass there is at least ``COVER rho dx^3``
-(colliders.COVER = 1/6: the smoothed mass of a node half a cell outside a flat face), else in
-the body's *fringe*.  The body takes the whole momentum and angular momentum of its covered
-nodes (its own, the soft material's there and the stress impulses acting on them) and of its
-own mass in the fringe; the covered nodes then move with its rigid velocity field, so soft
-material that reaches them moves with the body instead of flowing into it, and the fringe
-nodes keep the soft material's own velocity (the rigid particles read the body's field
-there).  The grid's momentum and angular momentum are unchanged by this.  Before, rigid
-particles read the mass-averaged node velocity and were projected afterwards: the force that
-held a body up acted on the shared nodes' soft material as well, which then flowed into the
-body, and a steel ball on jelly sank at about 1 cm/s without end (benchmarks/bench_rigid.py).
+On the grid each body is a moving collider (kernels.py, after the grid velocities and before
+the boundaries; docs/CONTRACTS.md step 3).  A node where the body's particles transfer is
+*covered* where their mass there is at least ``COVER rho dx^3`` (colliders.COVER = 1/6: the
+smoothed mass of a node half a cell outside a flat face), else in the body's *fringe*; the
+body *owns* both (the ghost rules' mirrors leave covered nodes out).  The body's grid field is
+its own mass and momentum on its nodes (V, omega about their centre), and soft material on its
+nodes keeps its own velocity there; where it touches the body it meets the body as it meets a
+fixed level-set collider: the body has a level set (colliders.level_set of its full particle
+set in its initial pose, on the simulation grid, built once), read at a node's place in that
+pose, ``c_0 + R^T (x - c)``; soft particles within ``TOUCH`` of the surface engage their nodes
+(P2G, as for the ground), an engaged node of the body with soft material gets the ground's
+ghost rule (separating surface, the body's friction, the body's field as the surface's
+velocity: kernels.py ``_body_contact``), and after G2P a soft particle behind the surface is
+moved onto it with its inward velocity relative to the body removed.  The soft material's
+momentum change on the body's nodes, summed per body in a fixed order (momentum and angular
+momentum), is the body's reaction: it is added to the body's momentum after G2P, before its
+contact solve, so the grid's momentum is unchanged by the contact.
 
-Where two bodies meet, a node belongs to the one with the higher index and the other's
-particles read its field there: they exchange momentum through those nodes, so a collision
-is perfectly inelastic, as between any two MPM materials.
+Before, the covered nodes took the whole momentum of every material on them into the body's
+field and moved with it: soft material that reached them (up to half a cell outside the body's
+surface) was glued to the body, no separation, no slip, no inelastic contact.  A soft block on
+a free block rested on the covered nodes a cell above the body's particles (layer gap 0.97
+cells, 0.34 on the same block fixed) and kept bouncing on them (at rest from 1.47 s, fixed:
+0.53 s; benchmarks/bench_soft_on_free_body.py); duck_stone's duck sat 2.5 cm above its stone
+and rocked on it to the end of the clip (kinetic energy 0.003-0.035 J from 3 to 5 s: 0.2-0.6
+times that of the fixed stone at 0.4 s), so the rest hold never took the scene; basket_mat's
+basket rested 1.2 cells above its foam mat, which it never dented.  Now the block rests from
+0.77 s with the fixed block's gap; the duck on the stone at the fixed stone's height, below
+the rest speed from 2.8 s (.devcarry figures in the rest15 report).
 
-The covered nodes take the body's field *after its contact solve*.  A substep with free
-bodies runs the MPM kernel in two launches (kernels.py ``part`` 1 and 2): the first ends with
-the bodies' grid fields (gbody: centre c0, V, omega, mass and inertia about c0 of the covered
-nodes and the fringe's rigid mass); then each field goes through the body's contact solve
-(step 2 below, ``advance`` with ``pre``, which moves nothing) with the field's mass and inertia
-(the soft material on the covered nodes moves with the field, so the contacts hold it too),
-and the second launch gives the covered nodes the solved field and runs the boundaries and
-G2P.  The contacts depend only on the pose at the start of the substep, so
-they are found before the first launch (``reduce`` with ``what`` 1).  After G2P the solve
-runs again on the momentum the particles carry (steps 1-2; the field already meets the
-contacts, so it has next to nothing left to do, except where another body's nodes changed
-its particles' momentum) and the body moves.  Before, the covered nodes took the field before
-the contact solve: for a body resting on the ground that is -g dt plus the push of what rests
-on it, while the body itself was stopped by its contacts, so soft material resting on a
-resting free body moved into it at that speed, every substep: a jelly on a free slab crept
-into it at 0.04 m/s (grid 16, dt 3.7 ms) and through its top face, the duck of duck_stone
-into its stone at 0.007-0.009 m/s, and neither ever came to rest (the rest hold never took
-them; ``test_soft_block_rests_on_a_free_rigid_slab_and_the_rest_hold_takes_it``).  Now the
-soft material covered by the body shares its contact response: the ground holds what rests on
-the body through it, as a fixed slab or the ground itself would.  The torch pseudo-step
-(bgdo/torch_step.py) has no body contacts, so it has nothing to mirror here.
+The soft material meets the field *after the body's contact solve* and with the body's
+reaction already in it.  A substep with free bodies runs the MPM kernel in two launches
+(kernels.py ``part`` 1 and 2): the first ends with the bodies' grid fields (gbody: centre c0,
+V, omega, mass and inertia about c0); the field carries, as its prediction, the reaction of the
+last substep (gbody[b, 18:24], copied to gbody[b, 27:33]); then each field goes through the
+body's contact solve (step 2 below, ``advance`` with ``pre``, which moves nothing), and the
+second launch meets the soft material with the solved field, runs the boundaries and G2P.
+After G2P the body takes this substep's reaction less the prediction (_start_vw).  Without
+the prediction the soft material met the body's velocity before its push (-g dt for a ball
+resting on jelly): the jelly under the ball moved down at that speed every substep and the ball
+followed (2.9 mm in 0.3 s in ``test_rigid_ball_on_jelly_comes_to_rest_...``); without the solve
+on the grid, soft material resting on a body that rests on the ground met the body's velocity
+before its ground contact and crept into it (``test_soft_block_rests_on_a_free_rigid_slab_...``).
+The contacts depend only on the pose at the start of the substep, so they are found before the
+first launch (``reduce`` with ``what`` 1).  After G2P the solve runs again on the momentum the
+particles carry plus the reaction (steps 1-2) and the body moves.
+
+Where two bodies meet, a node belongs to the one with the higher index, its field takes the
+rigid mass of both there, and the other's particles read its field: they exchange momentum
+through those nodes, so a collision is perfectly inelastic, as between any two MPM materials.
+The torch pseudo-step (bgdo/torch_step.py) mirrors the grid field and the soft material's own
+velocity on the body's nodes; it has no body contacts and no soft-body contact.
 
 Per substep, after the MPM kernel's second launch:
 
@@ -297,9 +310,8 @@ def _body_mass(body_M: ti.template(), body_R: ti.template(), body_I0inv: ti.temp
                body_c: ti.template(), b, pre: ti.template()):
     """What body b's contact solve moves: (M, I^-1 in the current pose, roff: the offset of the
     body's centre of mass from the solve's reference point, added to the contacts' arms).  The
-    body itself (reference: its centre of mass), or with ``pre`` its grid field: the covered
-    nodes' mass and inertia about their centre c0 (gbody, kernels.py), the body's own soft
-    load included, which moves with the solved field."""
+    body itself (reference: its centre of mass), or with ``pre`` its grid field: its own mass
+    and inertia on its nodes about their centre c0 (gbody, kernels.py)."""
     M = body_M[b]
     R = body_R[b]
     Iinv = R @ body_I0inv[b] @ R.transpose()
@@ -315,7 +327,8 @@ def _body_mass(body_M: ti.template(), body_R: ti.template(), body_I0inv: ti.temp
 
 
 @ti.func
-def _start_vw(part: ti.template(), gbody: ti.template(), b, T, M, Iinv, pre: ti.template()):
+def _start_vw(part: ti.template(), gbody: ti.template(), body_c: ti.template(), b, T, M, Iinv,
+              pre: ti.template()):
     """Body b's velocity (V at the reference point of :func:`_body_mass`, omega) before its
     contact solve: from the chunks' momentum sums (part, after G2P), or with ``pre`` its grid
     field (gbody: V at c0, omega)."""
@@ -331,6 +344,15 @@ def _start_vw(part: ti.template(), gbody: ti.template(), b, T, M, Iinv, pre: ti.
             for q in ti.static(range(3)):
                 P[q] += part[c, b, q]
                 Lm[q] += part[c, b, 3 + q]
+        # the reaction of the soft material the body met on the grid (kernels.py _body_contact):
+        # gbody[b, 18:21] momentum, [21:24] angular momentum about the origin, less the prediction
+        # its grid field already carried (last substep's, gbody[b, 27:33]; module docs "Coupling")
+        Pr = ti.Vector([gbody[b, 18] - gbody[b, 27], gbody[b, 19] - gbody[b, 28], gbody[b, 20] - gbody[b, 29]],
+                       dt=ti.f64)
+        Lr = ti.Vector([gbody[b, 21] - gbody[b, 30], gbody[b, 22] - gbody[b, 31], gbody[b, 23] - gbody[b, 32]],
+                       dt=ti.f64)
+        P += Pr
+        Lm += Lr - body_c[b].cross(Pr)
         V = P / M
         w = Iinv @ Lm
     return V, w
@@ -529,7 +551,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
         for b in range(B):
             R = body_R[b]
             M, Iinv, roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
-            V, w = _start_vw(part, gbody, b, T, M, Iinv, pre)
+            V, w = _start_vw(part, gbody, body_c, b, T, M, Iinv, pre)
             # contacts: projected Gauss-Seidel with accumulated impulses
             for c in range(T):
                 for j in range(ct_count[c]):
@@ -625,7 +647,7 @@ def build(counts: tuple, boundary: str, static: bool, private_grid: bool) -> Sim
         cap = ct.shape[1]
         for b in range(B):  # the chunks' sums (in chunk order), the scratch rows zeroed
             M, Iinv, _roff = _body_mass(body_M, body_R, body_I0inv, gbody, body_c, b, pre)
-            V, w = _start_vw(part, gbody, b, T, M, Iinv, pre)
+            V, w = _start_vw(part, gbody, body_c, b, T, M, Iinv, pre)
             for q in ti.static(range(3)):
                 work[b, _W_V + q] = V[q]
                 work[b, _W_W + q] = w[q]

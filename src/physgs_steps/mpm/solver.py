@@ -352,8 +352,11 @@ class MPMSolver:
         self._gpart = ti.ndarray(ti.f64, (G * G + G if grids else 1, nb, K.N_GSUM))  # per column, slab, body: grid sums
         self.grid_rm = ti.ndarray(ti.f32, (T, G, G, G) if grids else (1, 1, 1, 1))  # rigid mass per node
         self.grid_rv = ti.ndarray(K.vec3, (T, G, G, G) if grids else (1, 1, 1, 1))  # rigid momentum, velocity
-        gbody = np.zeros((nb, 17))  # per body: centre, V, omega of the covered nodes; covering mass; their mass, inertia
+        # per body: centre, V, omega of its grid field; covering mass; the field's mass, inertia; the
+        # body's friction; the reaction of the soft material it meets (momentum, angular momentum)
+        gbody = np.zeros((nb, 33))  # ... its centre in its initial pose (its level set's frame); last reaction
         gbody[: len(free), 9] = [colliders.COVER * self.materials[k].density * self.dx ** 3 for k in free]
+        gbody[: len(free), 17] = [self.materials[k].friction for k in free]
         self._gbody = _ndarray_from(gbody, ti.f64)
         if free:
             bodies = [np.flatnonzero(mat_sorted == k) for k in free]
@@ -361,6 +364,23 @@ class MPMSolver:
                                              sum(len(full[k][1]) for k in free if k in full))
             self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, chunks, [self.materials[k].name for k in free],
                                                rigid_mod.contact_solve(self.arch), full=[full.get(k) for k in free])
+            gbody[: len(free), 24:27] = self.rigid._c0
+            self._gbody = _ndarray_from(gbody, ti.f64)
+            # per body its level set in its initial pose (the soft material's contact, kernels.py
+            # _body_contact): from its full set of particles
+            # (the spacing a point stands for from the particles' volumes, as for fixed instances)
+            phis = []
+            for k, i in zip(free, bodies):
+                pts, pm = (full[k][0], full[k][1]) if k in full else (xs[i], mass[i])
+                spacing = float(np.median(pm / self.materials[k].density)) ** (1 / 3) / self.L
+                geom = StaticGeometry(pts / self.L, spacing=spacing, name=self.materials[k].name)
+                phis.append(colliders.level_set(geom, G, self.L))
+            self._bphi = _ndarray_from(np.stack(phis), ti.f32)
+            self._bpose = (self.rigid.body_c, self.rigid.body_R)
+        else:
+            self._bphi = ti.ndarray(ti.f32, (1, 1, 1, 1))
+            self._bpose = (ti.ndarray(rigid_mod.vec3d, 1), ti.ndarray(rigid_mod.mat3d, 1))
+        if free:
             b = self.bound
             self._kr = rigid_mod.build(b.counts, b.boundary, bool(self._static_geoms), self.private_grid)
             self._launch_reduce, self._launch_scatter = Launcher(self._kr.reduce), Launcher(self._kr.scatter)
@@ -623,7 +643,7 @@ class MPMSolver:
         b = self.bound
         return (self.x, self.v, self.C, self.F, self.tau, self.ep, self._p_vol, self._p_face, self._p_mass, self._mat,
                 self._act_bits, self.grid_v, self.grid_m, self.grid_c, self.grid_b, self.grid_o, self.grid_r,
-                self.grid_rm, self.grid_rv, self._mbody, self._gpart, self._gbody, self._mparams, self._mcombo, self._dyn,
+                self.grid_rm, self.grid_rv, self._mbody, self._gpart, self._gbody, self._bphi, *self._bpose, self._mparams, self._mcombo, self._dyn,
                 self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
                 float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]),
                 float(damp), self._cell_start)
