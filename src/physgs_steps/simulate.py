@@ -183,8 +183,10 @@ def build_solver(parts: dict, materials: list[Material], labels: list[int], cfg:
     index = {l: i for i, l in enumerate(labels)}
     material = np.array([index[int(l)] for l in parts["label"]], np.int64)
     # contact starts at each particle's face (colliders.py "Boundary placement"): half its side in
-    # front of a filled (lattice) particle's centre, at the centre of a gaussian (on the surface)
-    solver.set_particles(parts["x"], parts["vol"], material, face=face_half_width(parts["vol"], ~parts["filled"]))
+    # front of a filled (lattice) particle's centre, at the centre of a gaussian (on the surface);
+    # particles without a "filled" flag are all material samples (the lattice rule)
+    surface = ~np.asarray(parts["filled"], bool) if "filled" in parts else None
+    solver.set_particles(parts["x"], parts["vol"], material, face=face_half_width(parts["vol"], surface))
     counts = np.bincount(material, minlength=len(materials))
     L3 = float(sim["domain_size"]) ** 3
     for k, (m, n) in enumerate(zip(materials, counts)):
