@@ -14,7 +14,7 @@ from the same particles after the default solver: ``atomic`` (one float atomic p
 and node, the transfer before coarsening) and ``coarsened`` (runs of particles with the same
 stencil base summed in registers, one write per run; device re-sort by stencil base), with
 options ``:K=<particles per thread>`` (``K=cell``: a thread per cell of the last sort),
-``:N=<substeps between re-sorts>``, ``:grid=private|atomic`` (CPU: per-thread grids, the default there, or one grid with atomics
+``:N=<substeps between re-sorts>``, ``:S=1|3|9`` (threads sharing a run's 27 nodes), ``:grid=private|atomic`` (CPU: per-thread grids, the default there, or one grid with atomics
 as on CUDA).  A table per size gives each variant's rate and its ratio to ``atomic``.
 
 Particles fill a box in random order (as gaussians come from a .ply); the textbook kernel gets
@@ -34,6 +34,7 @@ import time
 import numpy as np
 
 ROWS = "ROWS "
+BATCH = 4  # physgs' substeps per call: MPMSolver.substeps, as the simulation stages advance
 GRID_FOR = {30_000: 32, 100_000: 48, 300_000: 64, 1_000_000: 96}
 DEFAULT_VARIANTS = ["atomic", "coarsened", "coarsened:K=8", "coarsened:K=32", "coarsened:K=cell",
                     "coarsened:N=4", "coarsened:N=64"]
@@ -53,10 +54,12 @@ def parse_variant(text: str) -> dict:
             kw["run_length"] = "cell" if value == "cell" else int(value)
         elif key == "N":
             kw["resort_every"] = int(value)
+        elif key == "S":
+            kw["split"] = int(value)
         elif key == "grid" and value in ("private", "atomic"):
             kw["grid_mode"] = value
         else:
-            raise SystemExit(f"--p2g {text!r}: unknown option {o!r} (K=<int>, N=<int>, grid=private|atomic)")
+            raise SystemExit(f"--p2g {text!r}: unknown option {o!r} (K=<int>, N=<int>, S=1|3|9, grid=private|atomic)")
     return kw
 
 
@@ -193,7 +196,7 @@ def bench_variants(arch: str, x: np.ndarray, G: int, m, dt: float, variants: lis
     counts = [0] * len(solvers)
     for _ in range(max(1, rounds)):
         for i, s in enumerate(solvers):
-            rate, n = _rate(lambda: s.substep(dt), P, seconds / max(1, rounds))
+            rate, n = _rate(lambda: s.substeps(BATCH, dt), BATCH * P, seconds / max(1, rounds))
             rates[i].append(rate)
             counts[i] += n
     rows = []
@@ -205,17 +208,18 @@ def bench_variants(arch: str, x: np.ndarray, G: int, m, dt: float, variants: lis
                      "resort_every": s.resort_every if s.p2g == "coarsened" else None,
                      "grid_mode": "private" if s.private_grid else "atomic", "rate": max(rs),
                      "rate_median": float(np.median(rs)), "rates": rs, "resorts": s.sort_generation,
-                     "substeps_measured": n})
+                     "split": s.split if s.p2g == "coarsened" and not s.private_grid else None,
+                     "substeps_measured": BATCH * n})
     del solvers, s
     ref = {r["grid_mode"]: r["rate"] for r in rows if r["p2g"] == "atomic"}  # per grid mode
     print(f"P2G variants, {arch} P={P} grid {G}^3, particle-substeps/s, best of {rounds} interleaved rounds "
           f"(vs atomic: against the atomic variant of the same grid mode):", flush=True)
-    print(f"  {'variant':28s} {'grid':8s} {'K':>4s} {'N':>4s} {'rate':>10s} {'median':>10s} {'vs atomic':>10s} "
+    print(f"  {'variant':28s} {'grid':8s} {'K':>4s} {'N':>4s} {'S':>2s} {'rate':>10s} {'median':>10s} {'vs atomic':>10s} "
           f"{'vs textbook':>12s}")
     for r in rows:
         r["vs_atomic"] = r["rate"] / ref[r["grid_mode"]] if r["grid_mode"] in ref else None
         r["vs_textbook_sorted"] = r["rate"] / textbook_sorted
-        print(f"  {r['variant']:28s} {r['grid_mode']:8s} {r['run_length'] or '-':>4} {r['resort_every'] or '-':>4} "
+        print(f"  {r['variant']:28s} {r['grid_mode']:8s} {r['run_length'] or '-':>4} {r['resort_every'] or '-':>4} {r['split'] or '-':>2} "
               f"{r['rate']:10.3g} {r['rate_median']:10.3g} {r['vs_atomic'] or float('nan'):10.2f} "
               f"{r['vs_textbook_sorted']:12.2f}",
               flush=True)
@@ -238,13 +242,13 @@ def bench_arch(arch: str, sizes: list, seconds: float, variants: list | None = N
         p_vol = 0.4 ** 3 / P
         tb = Textbook(x, G, 1.0, m.mu, m.lam, p_vol, p_vol * m.density)
         tbs = Textbook(x[s._perm], G, 1.0, m.mu, m.lam, p_vol, p_vol * m.density)
-        r_ours, n_ours = _rate(lambda: s.substep(dt), P, seconds)
+        r_ours, n_ours = _rate(lambda: s.substeps(BATCH, dt), BATCH * P, seconds)
         _profile(lambda: s.substep(dt), f"physgs substep (p2g {s.p2g}), P={P}")
         r_tb, _ = _rate(lambda: tb.substep(dt), P, seconds)
         r_tbs, _ = _rate(lambda: tbs.substep(dt), P, seconds)
         row = {"arch": s.arch, "particles": P, "n_grid": G, "physgs": r_ours, "textbook": r_tb,
                "textbook_sorted": r_tbs, "ratio": r_ours / r_tb, "ratio_vs_sorted": r_ours / r_tbs,
-               "p2g": s.p2g, "substeps_measured": n_ours, "threads": os.cpu_count()}
+               "p2g": s.p2g, "substeps_measured": BATCH * n_ours, "threads": os.cpu_count()}
         print(f"{s.arch:5s} P={P:>8d} grid {G}^3: physgs (p2g {s.p2g}) {r_ours:.3g}  textbook {r_tb:.3g} "
               f"(sorted input {r_tbs:.3g}) particle-substeps/s  ratio {row['ratio']:.2f} "
               f"({row['ratio_vs_sorted']:.2f} vs sorted)", flush=True)

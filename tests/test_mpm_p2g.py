@@ -42,11 +42,14 @@ def test_coarsened_p2g_matches_atomic_across_resorts():
     x, vol, mat, v = _two_blocks()
     ref = _solver("atomic")
     runs = [_solver("coarsened", run_length=5, resort_every=4), _solver("coarsened", run_length="cell", resort_every=4),
+            _solver("coarsened", run_length=5, resort_every=4, split=1),  # one thread a run (default: 3), or 9
+            _solver("coarsened", run_length=5, resort_every=4, split=9),
             _solver("coarsened", "private", resort_every=4)]
     for s in [ref] + runs:
         s.substep(2e-4)
     m_ref = ref.grid_m.to_numpy()[0]
-    for s in runs[:2]:  # one grid, as on CUDA
+    for s in runs[:4]:  # one grid, as on CUDA
+        assert np.abs(s.grid_c.to_numpy()[0] - ref.grid_c.to_numpy()[0]).max() == 0  # the same touched nodes
         assert np.abs(s.grid_m.to_numpy()[0] - m_ref).max() < 1e-6 * m_ref.max()
     for s in [ref] + runs:
         for _ in range(29):
@@ -132,6 +135,8 @@ def test_exclusive_scan_and_mode_errors():
         resolve("shared", "cpu")
     with pytest.raises(ConfigError, match="run_length"):
         MPMSolver([JELLY], n_grid=32, backend="cpu", p2g="coarsened", run_length=0)
+    with pytest.raises(ConfigError, match="split"):
+        MPMSolver([JELLY], n_grid=32, backend="cpu", p2g="coarsened", split=2)
 
 
 def test_batched_substeps_resort_where_single_substeps_do():

@@ -105,6 +105,7 @@ class Spec(NamedTuple):
     private_grid: bool   # CPU: one grid per chunk of particles, no atomics; CUDA: one grid, atomics
     p2g: str = "atomic"  # atomic: one add per particle and node; coarsened: one per run of equal bases (p2g_sorted.py)
     run: int = 0         # coarsened P2G on one grid: particles per thread; P2G.CELL: per sorted cell; 0: unused
+    split: int = 1       # coarsened P2G with `run` particles per thread: threads per run (P2G.SPLITS), each its share of the 27 nodes
 
 
 @ti.func
@@ -382,7 +383,10 @@ def build(spec: Spec) -> SimpleNamespace:
     private_grid = spec.private_grid
     coarsened = spec.p2g == "coarsened"
     run = spec.run
-    flush = P2G.make_flush(private_grid)
+    split = spec.split
+    if split != 1 and not (coarsened and not private_grid and run > 0):
+        raise ValueError(f"Spec.split {split} needs coarsened P2G with run > 0 on one grid")
+    runfl = P2G.make_flush(private_grid, split)
     two_pi = 2.0 * math.pi
     col = collider_funcs(spec.counts, spec.boundary, spec.static)
     n_obst, n_slots = col.n_obst, col.n_slots
@@ -652,7 +656,7 @@ def build(spec: Spec) -> SimpleNamespace:
                         grid_rv[0, node[0], node[1], node[2]] += weight * (mv + affine @ dpos)
 
     @ti.func
-    def _p2g_runs(p0, p1, c, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+    def _p2g_runs(p0, p1, c, s, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
                   p_vol: ti.template(), p_face: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
                   act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
                   mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
@@ -660,8 +664,9 @@ def build(spec: Spec) -> SimpleNamespace:
                   bphi: ti.template(), body_c: ti.template(), body_R: ti.template()):
         """Coarsened P2G of particles p0..p1-1 (p2g_sorted.py): sums in registers while the
         stencil base stays the same, one write of the 27 nodes per run (and of grid_c when a
-        particle of the run touches an obstacle: the same nodes)."""
-        acc = P2G.acc_zero()
+        particle of the run touches an obstacle: the same nodes); with Spec.split > 1 only the
+        nodes of this thread's part ``s`` of the run."""
+        acc = P2G.acc_zero(split)
         cur = ti.Vector([-1, -1, -1])  # the run's base (none yet)
         touch_run = 0
         for p in range(p0, p1 + 1):  # p1: past the end, closes the last run (one flush site: less code)
@@ -679,15 +684,14 @@ def build(spec: Spec) -> SimpleNamespace:
                                                                        gbody, bphi, body_c, body_R)
             if not P2G.same_base(base, cur):
                 if cur[0] >= 0:
-                    flush(acc, cur, c, grid_v, grid_m)
+                    runfl.flush(acc, cur, s, c, grid_v, grid_m)
                     if touch_run == 1:
-                        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                            grid_c[c, cur[0] + i, cur[1] + j, cur[2] + k] = 1.0
-                    acc = P2G.acc_zero()
+                        runfl.mark(cur, s, c, grid_c)
+                    acc = P2G.acc_zero(split)
                     touch_run = 0
                 cur = base
             if p < p1:
-                P2G.acc_add(acc, fx, dx, mv, affine, mass)
+                P2G.acc_add(acc, split, s, fx, dx, mv, affine, mass)
                 touch_run = ti.max(touch_run, touch)
 
     @ti.kernel
@@ -765,7 +769,7 @@ def build(spec: Spec) -> SimpleNamespace:
             # P2G
             if ti.static(coarsened and private_grid):
                 for c in range(n_chunks):  # parallel over chunks, runs of equal bases inside a chunk
-                    _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo,
+                    _p2g_runs(c * P // n_chunks, (c + 1) * P // n_chunks, c, 0, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo,
                               act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
                               inv_dx, G, L, wall, gbody, bphi, body_c,
                                   body_R)
@@ -774,12 +778,13 @@ def build(spec: Spec) -> SimpleNamespace:
                     p0 = cell_start[k]
                     p1 = cell_start[k + 1]
                     if p1 > p0:
-                        _p2g_runs(p0, p1, 0, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                        _p2g_runs(p0, p1, 0, 0, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                                   mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall, gbody, bphi, body_c,
                                   body_R)
             elif ti.static(coarsened):
-                for r in range((P + run - 1) // run):  # one thread per `run` consecutive particles
-                    _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo,
+                for rs in range((P + run - 1) // run * split):  # `split` threads per `run` consecutive particles
+                    r = rs // split
+                    _p2g_runs(r * run, ti.min((r + 1) * run, P), 0, rs % split, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo,
                               act_bits, grid_v, grid_m, grid_c, mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx,
                               inv_dx, G, L, wall, gbody, bphi, body_c,
                                   body_R)

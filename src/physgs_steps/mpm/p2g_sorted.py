@@ -24,6 +24,7 @@ transfer (the reference); ``auto`` resolves per arch with :data:`AUTO`.
 """
 
 import functools
+from types import SimpleNamespace
 
 import numpy as np
 import taichi as ti
@@ -40,6 +41,12 @@ AUTO_MIN_PARTICLES = 200_000
 RUN_LENGTH = 16  # CUDA: particles per thread in coarsened P2G
 CELL = -1  # run_length value: one thread per stencil-base cell of the last sort (its range of slots)
 RESORT_EVERY = 16  # substeps between device re-sorts in coarsened mode
+# CUDA: threads per run in coarsened P2G (SPLITS below).  Measured on one H200 (bench_mpm.py,
+# jelly, best of 3 interleaved rounds, median in brackets): 300k particles 8.83e8 (7.79e8)
+# particle-substeps/s with 1 thread per run, 9.91e8 (8.61e8) with 3, 9.94e8 (8.73e8) with 9;
+# 1M: 1.28e9 (1.07e9), 1.34e9 (1.09e9), 1.29e9 (1.04e9).  P2G was 0.36 ms of a 0.74 ms
+# substep at 1M, 0.33 ms with 3 (Taichi's profiler; G2P 0.28 ms).
+SPLIT = 3
 SCAN_BLOCK = 128  # entries each thread sums serially in the prefix sum
 
 vec3 = ti.types.vector(3, ti.f32)
@@ -63,38 +70,99 @@ def resolve(mode: str, arch: str, n_particles: int | None = None) -> str:
 
 
 # ---------------------------------------------------------------------------- run accumulator
-@ti.func
-def acc_zero():
-    """The accumulator of one run: [27, 4] (momentum xyz, mass) per stencil node, node n = 9i + 3j + k."""
-    return ti.Matrix.zero(ti.f32, 27, 4)
+# A run's 27 stencil nodes may be shared out among ``split`` threads (1, 3 or 9): thread ``s``
+# of a run sums the nodes of x slab ``s`` (split 3: 9 nodes) or of (x, y) column ``s // 3,
+# s % 3`` (split 9: 3 nodes), so each thread holds 27 / split x 4 sums in registers instead of
+# 108 (more threads in flight on a GPU; every thread of a run reads the same particles).
+SPLITS = (1, 3, 9)
+
+
+def nodes_per_thread(split: int) -> int:
+    return 27 // split
 
 
 @ti.func
-def acc_add(acc: ti.template(), fx, dx, mv, affine, mass):
+def _slab_offsets(split: ti.template(), s):
+    """The stencil offsets (sx, sy) thread ``s`` of a run starts from (0, 0 with split 1)."""
+    sx = 0
+    sy = 0
+    if ti.static(split == 3):
+        sx = s
+    elif ti.static(split == 9):
+        sx = s // 3
+        sy = s % 3
+    return sx, sy
+
+
+@ti.func
+def _pick(a, b, c, i):
+    """(a, b, c)[i] for a runtime i in 0..2."""
+    return ti.select(i == 0, a, ti.select(i == 1, b, c))
+
+
+@ti.func
+def acc_zero(split: ti.template()):
+    """The accumulator of one run (or of its part ``split``): [27 / split, 4] (momentum xyz,
+    mass) per stencil node of the part, node n = 9i + 3j + k of its own offsets."""
+    return ti.Matrix.zero(ti.f32, 27 // split, 4)
+
+
+@ti.func
+def acc_add(acc: ti.template(), split: ti.template(), s, fx, dx, mv, affine, mass):
     """Add one particle's APIC contributions (stencil offset ``fx`` [3] in cells from the base
-    node, momentum ``mv``, affine matrix ``affine``, ``mass``) to the run accumulator ``acc``
-    [27, 4] in place (quadratic B-spline weights, as kernels._stencil)."""
+    node, momentum ``mv``, affine matrix ``affine``, ``mass``) to the part ``s`` of ``split`` of
+    the run accumulator ``acc`` [27 / split, 4] in place (quadratic B-spline weights, as
+    kernels._stencil)."""
     w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-        n = ti.static(9 * i + 3 * j + k)
-        dpos = (ti.Vector([i, j, k], dt=ti.f32) - fx) * dx
-        weight = w[i][0] * w[j][1] * w[k][2]
-        mom = weight * (mv + affine @ dpos)
-        acc[n, 0] += mom[0]
-        acc[n, 1] += mom[1]
-        acc[n, 2] += mom[2]
-        acc[n, 3] += weight * mass
-
-
-def make_flush(private_grid: bool):
-    """ti.func flush(acc, base, c, grid_v, grid_m): add a run's sums to the 27 nodes from
-    ``base`` of grid chunk ``c`` (plain adds into a thread's private grid, else atomics)."""
-
-    @ti.func
-    def flush(acc: ti.template(), base, c, grid_v: ti.template(), grid_m: ti.template()):
+    if ti.static(split == 1):
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             n = ti.static(9 * i + 3 * j + k)
-            node = base + ti.Vector([i, j, k])
+            dpos = (ti.Vector([i, j, k], dt=ti.f32) - fx) * dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            mom = weight * (mv + affine @ dpos)
+            acc[n, 0] += mom[0]
+            acc[n, 1] += mom[1]
+            acc[n, 2] += mom[2]
+            acc[n, 3] += weight * mass
+    else:
+        sx, sy = _slab_offsets(split, s)
+        wx = _pick(w[0][0], w[1][0], w[2][0], sx)
+        for j, k in ti.static(ti.ndrange(3 if split == 3 else 1, 3)):
+            n = ti.static(3 * j + k)
+            jj = sy + j
+            wy = w[j][1]  # split 3: every y offset j; split 9: the thread's own, sy
+            if ti.static(split == 9):
+                wy = _pick(w[0][1], w[1][1], w[2][1], sy)
+            dpos = (ti.Vector([sx, jj, k], dt=ti.f32) - fx) * dx
+            weight = wx * wy * w[k][2]
+            mom = weight * (mv + affine @ dpos)
+            acc[n, 0] += mom[0]
+            acc[n, 1] += mom[1]
+            acc[n, 2] += mom[2]
+            acc[n, 3] += weight * mass
+
+
+def make_flush(private_grid: bool, split: int = 1):
+    """ti.func flush(acc, base, s, c, grid_v, grid_m): add a run's sums (part ``s`` of
+    ``split``) to its nodes from ``base`` of grid chunk ``c`` (plain adds into a thread's
+    private grid, else atomics); and mark(base, s, c, grid_c): set its nodes' touch flag."""
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+
+    @ti.func
+    def _node(base, s, n: ti.template()):
+        node = base
+        if ti.static(split == 1):
+            node = base + ti.Vector([n // 9, (n // 3) % 3, n % 3])
+        else:
+            sx, sy = _slab_offsets(split, s)
+            node = base + ti.Vector([sx, sy + n // 3, n % 3])
+        return node
+
+    @ti.func
+    def flush(acc: ti.template(), base, s, c, grid_v: ti.template(), grid_m: ti.template()):
+        for n in ti.static(range(27 // split)):
+            node = _node(base, s, n)
             mom = ti.Vector([acc[n, 0], acc[n, 1], acc[n, 2]], dt=ti.f32)
             if ti.static(private_grid):
                 grid_v[c, node[0], node[1], node[2]] = grid_v[c, node[0], node[1], node[2]] + mom
@@ -103,7 +171,13 @@ def make_flush(private_grid: bool):
                 ti.atomic_add(grid_v[0, node[0], node[1], node[2]], mom)
                 ti.atomic_add(grid_m[0, node[0], node[1], node[2]], acc[n, 3])
 
-    return flush
+    @ti.func
+    def mark(base, s, c, grid_c: ti.template()):
+        for n in ti.static(range(27 // split)):
+            node = _node(base, s, n)
+            grid_c[c, node[0], node[1], node[2]] = 1.0
+
+    return SimpleNamespace(flush=flush, mark=mark)
 
 
 @ti.func

@@ -83,6 +83,8 @@ class MPMSolver:
         run_length: coarsened P2G on one grid (CUDA): particles per thread, or ``"cell"``: one
             thread per stencil-base cell of the last sort.
         resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load).
+        split: coarsened P2G with ``run_length`` particles per thread: threads per run (1, 3 or
+            9), each summing its share of the 27 nodes (p2g_sorted.SPLITS); else unused.
         rigid_particles_per_cell: simulate each free rigid body with proxy particles, about this
             many per grid cell (rigid.py "Proxy particles"); None: with every particle.
     """
@@ -91,6 +93,7 @@ class MPMSolver:
                  dynamics: Dynamics | None = None, backend: str = "cpu", labels: Sequence[int] | None = None,
                  sort_particles: bool = True, grid_mode: str = "auto", static: Sequence[StaticGeometry] = (),
                  p2g: str = "auto", run_length: int = P2G.RUN_LENGTH, resort_every: int = P2G.RESORT_EVERY,
+                 split: int = P2G.SPLIT,
                  rigid_particles_per_cell: float | None = None):
         if not materials:
             raise ConfigError("materials", "at least one material is needed")
@@ -124,8 +127,11 @@ class MPMSolver:
         if not isinstance(run_length, int) or (run_length < 1 and run_length != P2G.CELL) or int(resort_every) < 0:
             raise ConfigError("p2g", f"run_length must be >= 1 or 'cell' and resort_every >= 0, got {run_length!r}, "
                                      f"{resort_every!r}")
+        if split not in P2G.SPLITS:
+            raise ConfigError("p2g", f"split must be one of {', '.join(map(str, P2G.SPLITS))}, got {split!r}")
         self.run_length = run_length
         self.resort_every = int(resort_every)
+        self.split = int(split)
         self._sorter = None  # coarsened P2G: the device sort (p2g_sorted.DeviceSort)
         self._since_sort = 0
         self.sort_generation = 0  # counts device re-sorts (storage order changes)
@@ -232,7 +238,7 @@ class MPMSolver:
         if run == P2G.CELL and not self._sorting:
             run = P2G.RUN_LENGTH  # cells need the device sort's ranges
         spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid, p2g=self.p2g,
-                      run=run)
+                      run=run, split=self.split if run > 0 else 1)
         self._k = K.build(spec)
         self._launch_substep = Launcher(self._k.substep)  # backend.Launcher: no per-call argument processing
         self._batches = None  # substeps(): ti.graph batches of the substep kernel (_Batches), built on first use
