@@ -109,6 +109,23 @@ class Spec(NamedTuple):
 
 
 @ti.func
+def _trilinear(corners, fr):
+    """Trilinear value and gradient (per cell, unnormalised) of a cell's 8 corner values
+    ``corners`` [8] (corner (i, j, k) at 4i + 2j + k) at the fraction ``fr`` [3] of the cell."""
+    phi = 0.0
+    grad = ti.Vector.zero(ti.f32, 3)
+    for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
+        v = corners[ti.static(4 * i + 2 * j + k)]
+        wx = fr[0] if i else 1.0 - fr[0]
+        wy = fr[1] if j else 1.0 - fr[1]
+        wz = fr[2] if k else 1.0 - fr[2]
+        phi += wx * wy * wz * v
+        grad += v * ti.Vector([(1.0 if i else -1.0) * wy * wz, (1.0 if j else -1.0) * wx * wz,
+                               (1.0 if k else -1.0) * wx * wy], dt=ti.f32)
+    return phi, grad
+
+
+@ti.func
 def _box_sdf(xp, centre, half):
     """Signed distance (positive outside) of point ``xp`` to the box centre +- half."""
     q = ti.abs(xp - centre) - half
@@ -161,16 +178,10 @@ def collider_funcs(counts: tuple, boundary: str, static: bool) -> SimpleNamespac
         g = xp / dx
         base = ti.min(ti.max(ti.cast(ti.floor(g), ti.i32), 0), G - 2)
         fr = ti.min(ti.max(g - ti.cast(base, ti.f32), 0.0), 1.0)
-        phi = 0.0
-        grad = ti.Vector.zero(ti.f32, 3)
+        corners = ti.Vector.zero(ti.f32, 8)
         for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
-            v = lvl_phi[base[0] + i, base[1] + j, base[2] + k]
-            wx = fr[0] if i else 1.0 - fr[0]
-            wy = fr[1] if j else 1.0 - fr[1]
-            wz = fr[2] if k else 1.0 - fr[2]
-            phi += wx * wy * wz * v
-            grad += v * ti.Vector([(1.0 if i else -1.0) * wy * wz, (1.0 if j else -1.0) * wx * wz,
-                                   (1.0 if k else -1.0) * wx * wy], dt=ti.f32)
+            corners[ti.static(4 * i + 2 * j + k)] = lvl_phi[base[0] + i, base[1] + j, base[2] + k]
+        phi, grad = _trilinear(corners, fr)
         near = ti.min(ti.max(ti.cast(ti.round(g), ti.i32), 0), G - 1)
         o = lvl_id[near[0], near[1], near[2]]
         return phi, grad / ti.max(grad.norm(), 1e-20), lvl_rows[o, 0], lvl_rows[o, 1]
@@ -471,16 +482,10 @@ def build(spec: Spec) -> SimpleNamespace:
         g = ti.cast(y, ti.f32) / dx
         base = ti.min(ti.max(ti.cast(ti.floor(g), ti.i32), 0), Gb - 2)
         fr = ti.min(ti.max(g - ti.cast(base, ti.f32), 0.0), 1.0)
-        phi = 0.0
-        grad = ti.Vector.zero(ti.f32, 3)
+        corners = ti.Vector.zero(ti.f32, 8)
         for i, j, k in ti.static(ti.ndrange(2, 2, 2)):
-            v = bphi[b, base[0] + i, base[1] + j, base[2] + k]
-            wx = fr[0] if i else 1.0 - fr[0]
-            wy = fr[1] if j else 1.0 - fr[1]
-            wz = fr[2] if k else 1.0 - fr[2]
-            phi += wx * wy * wz * v
-            grad += v * ti.Vector([(1.0 if i else -1.0) * wy * wz, (1.0 if j else -1.0) * wx * wz,
-                                   (1.0 if k else -1.0) * wx * wy], dt=ti.f32)
+            corners[ti.static(4 * i + 2 * j + k)] = bphi[b, base[0] + i, base[1] + j, base[2] + k]
+        phi, grad = _trilinear(corners, fr)
         n = ti.cast(R @ ti.cast(grad, ti.f64), ti.f32)
         return phi, n / ti.max(n.norm(), 1e-20)
 
