@@ -226,7 +226,10 @@ def contact_sheet(images: list[np.ndarray], labels: list[str], columns: int, til
     for i, (img, label) in enumerate(zip(images, labels)):
         r, c = divmod(i, cols)
         x0, y0 = gap + c * (tw + gap), gap + r * (th + cap + gap)
-        thumb = Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8)).resize((tw, th), Image.LANCZOS)
+        # reducing_gap: a box reduction to 3x the thumbnail first, then Lanczos (Pillow's own
+        # option; 8 frames of 1920x1080 to 320 wide: 0.29 -> 0.11 s on the 2-core machine)
+        thumb = Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8)).resize((tw, th), Image.LANCZOS,
+                                                                                  reducing_gap=3.0)
         sheet.paste(thumb, (x0, y0))
         draw.rectangle([x0, y0, x0 + tw - 1, y0 + th - 1], outline=(128, 128, 128))
         draw.text((x0 + 2, y0 + th + 2), label, fill=(0, 0, 0), font=font)
