@@ -177,26 +177,3 @@ def test_elementwise_3x3_products_match_matmul_with_broadcasting():
     v = torch.randn(5, 4, 3, generator=g, dtype=torch.float64)
     A = torch.randn(5, 4, 3, 3, generator=g, dtype=torch.float64)
     assert torch.allclose(matvec3_elementwise(A, v), (A @ v.unsqueeze(-1)).squeeze(-1), atol=1e-12)
-
-
-def test_frames_deformed_together_equal_frames_deformed_one_by_one():
-    """deform_frames (the render stage's batches) gives each frame what deform gives it alone:
-    a partial index, rotations, and hidden rows in one frame of three."""
-    from physgs_steps.render.deform import deform_frames
-
-    t = _transform()
-    smap = SourceMap.from_transform(t)
-    sim = t.to_sim_scene(_scene(n=40))
-    rest = rest_gaussians(sim, smap)
-    index = torch.tensor([1, 4, 9, 16, 25, 36])
-    gen = torch.Generator().manual_seed(5)
-    x = torch.from_numpy(sim.means[index.numpy()])[None] + 0.02 * torch.randn(3, 6, 3, generator=gen, dtype=torch.float64)
-    F = torch.eye(3)[None, None] + 0.3 * torch.randn(3, 6, 3, 3, generator=gen)
-    hide = torch.zeros(3, 6, dtype=torch.bool)
-    hide[1, 2] = True
-    together = deform_frames(rest, index, x, F, smap, True, hide)
-    for b in range(3):
-        alone = deform(rest, index, x[b], F[b], smap, with_rotation=True, hide=hide[b] if b == 1 else None)
-        for k in ("means", "covars", "opacities", "rotations"):
-            assert torch.allclose(getattr(together[b], k), getattr(alone, k), atol=1e-6), (b, k)
-    assert together[1].opacities[9].item() == 0.0 and together[0].opacities[9].item() > 0

@@ -230,7 +230,7 @@ def check_frame(frame: int, x: np.ndarray | torch.Tensor, F: np.ndarray | torch.
 
 def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: torch.Tensor, smap: SourceMap,
            with_rotation: bool, hide: torch.Tensor | None = None) -> Gaussians:
-    """Gaussians of one simulated frame, in the source frame (:func:`deform_frames` for several).
+    """Gaussians of one simulated frame, in the source frame.
 
     Args:
         rest: [N] rest gaussians in the source frame (:func:`rest_gaussians`).
@@ -243,54 +243,32 @@ def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: tor
     Returns:
         :class:`Gaussians` with N rows (rows not in ``index`` stay at rest).
     """
-    return deform_frames(rest, index, x_sim[None], F_sim[None], smap, with_rotation,
-                         None if hide is None else hide[None])[0]
-
-
-def deform_frames(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: torch.Tensor, smap: SourceMap,
-                  with_rotation: bool, hide: torch.Tensor | None = None) -> list[Gaussians]:
-    """Gaussians of B simulated frames at once (one set of tensor operations for all of them:
-    on a GPU the per-frame work is launch-bound at scene sizes below 10^6).
-
-    Args:
-        rest, index, smap, with_rotation: as :func:`deform`.
-        x_sim: [B, Nv, 3] simulated positions (sim frame).
-        F_sim: [B, Nv, 3, 3] deformation gradients (sim frame).
-        hide: optional [B, Nv] bool rows to leave out of each frame.
-    Returns:
-        B :class:`Gaussians` of N rows each (views into shared [B, N, ...] tensors).
-    """
     dev = rest.means.device
-    B = x_sim.shape[0]
-    x = smap.points(x_sim.to(dev, torch.float64)).float()  # [B, Nv, 3]
-    Fs = smap.linear(F_sim.to(dev, torch.float32))  # [B, Nv, 3, 3]; float32: R is orthonormal, |F| ~ 1
+    x = smap.points(x_sim.to(dev, torch.float64)).float()
+    Fs = smap.linear(F_sim.to(dev, torch.float32))  # float32: R is orthonormal, |F| ~ 1
+    opac = rest.opacities
     if hide is not None:
-        hide = hide.to(dev)
-        x = torch.where(hide[..., None], torch.zeros_like(x), x)
-        Fs = torch.where(hide[..., None, None], torch.eye(3, device=dev).expand_as(Fs), Fs)
+        x = torch.where(hide[:, None].to(dev), torch.zeros_like(x), x)
+        Fs = torch.where(hide[:, None, None].to(dev), torch.eye(3, device=dev).expand_as(Fs), Fs)
     full = index.numel() == rest.n and bool((index == torch.arange(rest.n, device=index.device)).all())
     idx = index.to(dev)
-    cov_rows = matmul3(matmul3(Fs, rest.covars[idx]), Fs.transpose(-1, -2))  # [B, Nv, 3, 3] F Sigma F^T
-    rot_rows = polar_rotation(Fs.reshape(-1, 3, 3)).reshape(Fs.shape) if with_rotation else None
+    cov_rows = matmul3(matmul3(Fs, rest.covars[idx]), Fs.transpose(1, 2))  # [Nv, 3, 3] F Sigma F^T
+    rot_rows = polar_rotation(Fs) if with_rotation else None
     if full:
         means, covars, rots = x, cov_rows, rot_rows
     else:
-        means = rest.means.repeat(B, 1, 1)
-        means[:, idx] = x
-        covars = rest.covars.repeat(B, 1, 1, 1)
-        covars[:, idx] = cov_rows
+        means = rest.means.clone()
+        means[idx] = x
+        covars = rest.covars.clone()
+        covars[idx] = cov_rows
         rots = None
         if rot_rows is not None:
-            rots = torch.eye(3, device=dev).repeat(B, rest.n, 1, 1)
-            rots[:, idx] = rot_rows
-    opac = [rest.opacities] * B
+            rots = torch.eye(3, device=dev).repeat(rest.n, 1, 1)
+            rots[idx] = rot_rows
     if hide is not None:
-        for b in range(B):
-            if bool(hide[b].any()):
-                opac[b] = rest.opacities.clone()
-                opac[b][idx[hide[b]]] = 0.0
-    return [Gaussians(means=means[b], covars=covars[b], opacities=opac[b], sh=rest.sh,
-                      rotations=None if rots is None else rots[b]) for b in range(B)]
+        opac = opac.clone()
+        opac[idx[hide.to(dev)]] = 0.0
+    return Gaussians(means=means, covars=covars, opacities=opac, sh=rest.sh, rotations=rots)
 
 
 @dataclass
@@ -370,33 +348,29 @@ class CarrierMap:
         return CarrierMap(rows=rows, index=col, weight=w, offset=offset, cut=cut)
 
     def apply(self, x: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Stored states x [..., M, 3], F [..., M, 3, 3] (one frame, or B frames with a leading
-        [B]) -> ([..., Ns, 3] centres, [..., Ns, 3, 3] deformation gradients) of the moving
-        gaussians (sim frame)."""
+        """Stored states x [M, 3], F [M, 3, 3] -> ([Ns, 3] centres, [Ns, 3, 3] deformation
+        gradients) of the moving gaussians (sim frame)."""
         if self.identity:
             i = self.index[:, 0]
-            return x[..., i, :], F[..., i, :, :]
-        lead = x.shape[:-2]  # () or (B,)
+            return x[i], F[i]
         ns = self.rows.shape[0]
-        xs = torch.empty((*lead, ns, 3), dtype=x.dtype, device=x.device)
-        Fs = torch.empty((*lead, ns, 3, 3), dtype=F.dtype, device=F.device)
-        step = max(1, self.chunk // max(1, math.prod(lead)))  # rows per chunk: the same memory for any B
-        for a in range(0, ns, step):
-            b = min(a + step, ns)
+        xs = torch.empty((ns, 3), dtype=x.dtype, device=x.device)
+        Fs = torch.empty((ns, 3, 3), dtype=F.dtype, device=F.device)
+        for a in range(0, ns, self.chunk):
+            b = min(a + self.chunk, ns)
             i = self.index[a:b]  # [c, K]
             w, d = self.weight[a:b].to(x.dtype), self.offset[a:b].to(x.dtype)  # [c, K], [c, K, 3]
-            Fk = F[..., i, :, :]  # [..., c, K, 3, 3]
-            pred = x[..., i, :] + matvec3(Fk, d)  # [..., c, K, 3]
-            w = w.expand(*lead, *w.shape)
+            Fk = F[i]  # [c, K, 3, 3]
+            pred = x[i] + matvec3(Fk, d)  # [c, K, 3]
             if math.isfinite(self.cut):  # drivers torn off the heaviest one leave the blend
-                head = pred.gather(-2, w.argmax(dim=-1)[..., None, None].expand(*w.shape[:-1], 1, 3))  # [..., c, 1, 3]
+                head = pred.gather(1, w.argmax(dim=1)[:, None, None].expand(-1, 1, 3))  # [c, 1, 3]
                 w = torch.where(((pred - head) ** 2).sum(-1) <= self.cut ** 2, w, torch.zeros_like(w))
-                w = w / w.sum(dim=-1, keepdim=True)
-            xs[..., a:b, :] = (w.unsqueeze(-1) * pred).sum(dim=-2)
-            Fs[..., a:b, :, :] = (w.to(F.dtype)[..., None, None] * Fk).sum(dim=-3)
+                w = w / w.sum(dim=1, keepdim=True)
+            xs[a:b] = (w.unsqueeze(-1) * pred).sum(dim=1)
+            Fs[a:b] = torch.einsum("ck,ckij->cij", w.to(F.dtype), Fk)
         return xs, Fs
 
     def hidden(self, bad: torch.Tensor) -> torch.Tensor:
-        """[..., Ns] bool moving gaussians with a non-finite driver, from the [..., M] driver mask."""
-        b = bad.to(self.index.device)[..., self.index]  # [..., Ns, K]
-        return (b & (self.weight > 0)).any(dim=-1)
+        """[Ns] bool moving gaussians with a non-finite driver, from the [M] driver mask."""
+        b = bad.to(self.index.device)[self.index]  # [Ns, K]
+        return (b & (self.weight > 0)).any(dim=1)

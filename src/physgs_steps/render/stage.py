@@ -39,7 +39,7 @@ from ..prepare import load_transform
 from ..runtime import project_root, write_json
 from ..scene_io import load_gaussians
 from . import cameras as C
-from .deform import NONFINITE_POLICIES, CarrierMap, SourceMap, check_frame, deform_frames, rest_gaussians
+from .deform import NONFINITE_POLICIES, CarrierMap, SourceMap, check_frame, deform, rest_gaussians
 from .renderer import Renderer, RenderSettings, resolve_backend
 from .video import FrameDir, VideoWriter, contact_sheet, sheet_indices, write_png
 
@@ -319,54 +319,34 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
         with vw:
             for b0 in range(0, len(sel), batch):
                 ids = sel[b0:b0 + batch]
-                # the batch's states: a frame held at rest repeats the state of the frame before it;
-                # the others are deformed together (deform_frames: one set of tensor operations)
-                rows = [frames.row(t) for t in ids]
-                last = prev[0] if prev is not None else None
-                fresh = []  # positions j of the frames with a state of their own
-                for j, row in enumerate(rows):
-                    if row != (rows[j - 1] if j > 0 else last):
-                        fresh.append(j)
-                states = {}
-                if fresh:
-                    t0 = time.perf_counter()
-                    xF = [(frames.x(ids[j]), frames.F(ids[j])) for j in fresh]
-                    t_read += time.perf_counter() - t0
-                    bads = [check_frame(ids[j], x, F, rcfg["on_nonfinite"]) for j, (x, F) in zip(fresh, xF)]
-                    for j, bad in zip(fresh, bads):
-                        if bad is not None:
-                            log.warning("frame %d: %d stored particles with NaN/inf: the gaussians they carry are hidden",
-                                        ids[j], int(bad.sum()))
-                    X = torch.from_numpy(np.stack([x for x, _ in xF])).to(dev)  # [B', M, 3]
-                    FF = torch.from_numpy(np.stack([F for _, F in xF])).to(dev)  # [B', M, 3, 3]
-                    xs, Fs = cmap.apply(X, FF)
-                    hide = None  # [B', Ns] moving gaussians left out of each fresh frame
-                    if any(bad is not None for bad in bads):
-                        hide = cmap.hidden(torch.stack([torch.as_tensor(bad) if bad is not None else
-                                                        torch.zeros(X.shape[1], dtype=torch.bool) for bad in bads]))
-                        for n_, (j, bad) in enumerate(zip(fresh, bads)):
-                            if bad is not None:
-                                hidden[ids[j]] = int(hide[n_].sum())
-                    for j, g in zip(fresh, deform_frames(rest, index, xs, Fs, smap, degree > 0, hide)):
-                        states[j] = g
-                    t_deform += time.perf_counter() - t0
                 gs, copy = [], []  # copy[j]: frame j repeats the previous frame's image
                 for j, t in enumerate(ids):
                     cam = cams[b0 + j]
-                    if j in states:
-                        g = states[j]
-                        t0 = time.perf_counter()
-                        obj = g.means[index] if t not in hidden else g.means[index[~hide[fresh.index(j)].to(dev)]]
-                        check_camera(t, obj, cam, renderer.settings.near, clipped)  # the simulated object
-                        t_deform += time.perf_counter() - t0
-                        same = False
-                    else:  # held at rest: the state of the frame before
+                    row = frames.row(t)
+                    if prev is not None and prev[0] == row:  # held at rest: the state of the frame before
                         g = prev[1]
                         reused["states"] += 1
                         same = np.array_equal(prev[2].viewmat, cam.viewmat) and np.array_equal(prev[2].K, cam.K)
+                    else:
+                        t0 = time.perf_counter()
+                        x, F = frames.x(t), frames.F(t)
+                        t_read += time.perf_counter() - t0
+                        bad = check_frame(t, x, F, rcfg["on_nonfinite"])
+                        if bad is not None:
+                            log.warning("frame %d: %d stored particles with NaN/inf: the gaussians they carry are hidden",
+                                        t, int(bad.sum()))
+                        xs, Fs = cmap.apply(torch.from_numpy(x).to(dev), torch.from_numpy(F).to(dev))
+                        hide = None if bad is None else cmap.hidden(torch.as_tensor(bad))
+                        if hide is not None:
+                            hidden[t] = int(hide.sum())
+                        g = deform(rest, index, xs, Fs, smap, degree > 0, hide)
+                        t_deform += time.perf_counter() - t0
+                        obj = g.means[index] if hide is None else g.means[index[~hide.to(dev)]]  # the simulated object
+                        check_camera(t, obj, cam, renderer.settings.near, clipped)
+                        same = False
                     gs.append(g)
                     copy.append(same)
-                    prev = (rows[j], g, cam)
+                    prev = (row, g, cam)
                 t0 = time.perf_counter()
                 todo = [j for j in range(len(ids)) if not copy[j]]
                 imgs, alphas = [None] * len(ids), [None] * len(ids)
