@@ -43,10 +43,13 @@ def _init(arch) -> str:
     import time
 
     t0 = time.perf_counter()
+    extra = {}
+    if os.environ.get("PHYSGS_TI_BLOCK_DIM"):  # threads per CUDA block of parallel loops (bench_mpm.py experiments)
+        extra["default_gpu_block_dim"] = int(os.environ["PHYSGS_TI_BLOCK_DIM"])
     ti.init(arch=arch, default_fp=ti.f32, default_ip=ti.i32, offline_cache=True,
             offline_cache_file_path=str(cache_dir("taichi")), log_level=ti.WARN,
             cpu_max_num_threads=os.cpu_count() or 1, advanced_optimization=advanced_optimization(),
-            kernel_profiler=os.environ.get("PHYSGS_TI_PROFILER") == "1")  # benchmarks/bench_mpm.py --profile
+            kernel_profiler=os.environ.get("PHYSGS_TI_PROFILER") == "1", **extra)  # bench_mpm.py --profile
     from taichi.lang import impl
 
     got = impl.current_cfg().arch
