@@ -349,3 +349,21 @@ def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
         assert np.array_equal(st0[k], st2[k]), k
     assert np.abs(st1["x"] - x).max() > 0.01  # it fell and moved
     assert sa0["clamped"] == sa1["clamped"]
+
+
+def test_block_dim_knob_reaches_taichi():
+    """PHYSGS_TI_BLOCK_DIM (the kernel experiments' knob, README "MPM step") sets Taichi's
+    default_gpu_block_dim; unset, Taichi keeps its own default."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("from physgs_steps.mpm.backend import ensure_taichi; ensure_taichi('cpu'); "
+            "from taichi.lang import impl; print('BD', impl.current_cfg().default_gpu_block_dim)")
+    env = {k: v for k, v in os.environ.items() if k != "PHYSGS_TI_BLOCK_DIM"}
+    got = []
+    for extra in ({"PHYSGS_TI_BLOCK_DIM": "64"}, {}):
+        out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
+                             timeout=120, check=True).stdout
+        got.append(int(out.split("BD")[-1]))
+    assert got[0] == 64 and got[1] != 64
