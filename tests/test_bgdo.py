@@ -77,7 +77,9 @@ def np_return_map(F, mu, lam, pp, model):
         return U @ np.diag(np.exp(eps)) @ V.T
     c = pp["cohesion"]
     e = eps - c
-    sphi = math.sin(math.radians(pp["friction_angle"]))
+    from physgs_steps.mpm.material import dp_alpha, mc_sin_phi
+
+    sphi = mc_sin_phi(pp["friction_angle"])  # the surface of a material that flows in shear at phi
     if model == "mohr_coulomb":  # principal Kirchhoff stresses against (t1 - t3) + (t1 + t3) sin(phi) <= 0
         if e.sum() >= 0:
             return U @ np.diag(np.exp(np.zeros(3) + c)) @ V.T
@@ -90,7 +92,7 @@ def np_return_map(F, mu, lam, pp, model):
             f1 = (td.max() - td.min()) + (td.max() + td.min()) * sphi
             e = mean + (-f0 / f1) * dev
         return U @ np.diag(np.exp(e + c)) @ V.T
-    alpha = math.sqrt(2 / 3) * 2 * sphi / (3 - sphi)
+    alpha = dp_alpha(pp["friction_angle"])
     tr = e.sum()
     if tr >= 0:
         e = np.zeros(3)

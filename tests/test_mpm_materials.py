@@ -10,6 +10,7 @@ import pytest
 
 from physgs_steps.errors import ConfigError
 from physgs_steps.mpm import MPMSolver
+from physgs_steps.mpm.material import mc_sin_phi
 from physgs_steps.mpm.materials import D_MAX, Material, dp_alpha, lame, preset
 
 E, NU = 2.0e5, 0.3
@@ -125,7 +126,7 @@ def _numpy_return_map(model: str, F: np.ndarray, m: Material) -> np.ndarray:
         e = eps - m.cohesion
         tr = e.sum(-1, keepdims=True)
         hat = e - tr / 3
-        sphi = math.sin(math.radians(m.friction_angle))
+        sphi = mc_sin_phi(m.friction_angle)
         t = 2 * mu * e + lam * tr
         f = (t.max(-1) - t.min(-1)) + (t.max(-1) + t.min(-1)) * sphi
         th = 2 * mu * hat
@@ -188,7 +189,7 @@ def test_return_map_lands_on_or_inside_yield_surface(plastic_solver, k):
         e = eps - m.cohesion
         tr = e.sum(-1)
         t = 2 * mu * e + lam * tr[:, None]  # principal Kirchhoff stresses (tension > 0)
-        sphi = math.sin(math.radians(m.friction_angle))
+        sphi = mc_sin_phi(m.friction_angle)
         f = (t.max(-1) - t.min(-1)) + (t.max(-1) + t.min(-1)) * sphi
         assert np.all(f <= 2e-5 * mu) and np.all(tr <= 2e-5)
         assert np.mean(np.abs(f) < 1e-4 * mu) > 0.3  # many trial states were projected onto the surface
@@ -225,6 +226,8 @@ def test_material_validation_names_the_key():
         Material("stvk_hencky", "von_mises", E=1e5, nu=0.3, density=1000.0)
     with pytest.raises(ConfigError, match="friction_angle"):
         Material("stvk_hencky", "drucker_prager", E=1e5, nu=0.3, density=1000.0)
+    with pytest.raises(ConfigError, match="friction_angle"):  # an angle of repose: below 45 degrees (tan < 1)
+        Material("stvk_hencky", "mohr_coulomb", E=1e5, nu=0.3, density=1000.0, friction_angle=50.0)
     with pytest.raises(ConfigError, match="elasticity"):
         Material("rubbery", "identity", E=1e5, nu=0.3, density=1000.0)
     with pytest.raises(ConfigError, match="E"):
@@ -439,3 +442,38 @@ def test_granular_transfer_keeps_particle_velocities(plasticity):
         assert kept > 0.8  # measured 0.90 (mohr_coulomb, FLIP 0.98)
     else:
         assert kept < 0.2  # measured 0.04: APIC keeps only the part of the field the grid holds
+
+
+@pytest.mark.parametrize("theta, flows", [(28.0, False), (34.0, True)])
+def test_sand_layer_stays_below_its_friction_angle_and_flows_above(theta, flows):
+    """A material's friction angle is its angle of repose (material.mc_sin_phi): a cohesionless
+    30-degree sand layer on a rougher floor under gravity tilted by theta (plane strain, grid 32)
+    comes to rest at 28 degrees and flows at 34.  With phi taken as the Mohr-Coulomb angle itself
+    the layer flowed in steady shear at tan(theta) = sin(phi), 26.6 degrees: at 28 degrees its
+    middle moved 56 mm in 1 s and still ran at 20 mm/s (measured on the GPU and the CPU)."""
+    from physgs_steps.validation.base import Scene, Setting, simulate
+    from physgs_steps.validation.cases import SLAB_CELLS, G, channel
+
+    th = math.radians(theta)
+    setting = Setting(32, 8, 0.5)
+    dx = 1.0 / 32
+    slab = SLAB_CELLS * dx
+    dyn, o = channel(1.0, dx, floor=("separate", math.tan(math.radians(40.0))), back_wall=False, slab=slab,
+                     gravity=(G * math.sin(th), 0.0, -G * math.cos(th)))
+    sand = preset("sand", friction_angle=30.0, cohesion=0.0)
+    lo = np.array([0.15, o["y0"], o["z0"]])
+    sc = Scene.block(sand, lo, lo + (0.7, slab, 0.05), setting, 1.0, dyn)
+    mid = (sc.x[:, 0] > 0.45) & (sc.x[:, 0] < 0.55)  # away from the free ends, which slump either way
+    x0 = sc.x[mid, 0].mean()
+    got = {}
+
+    def on_frame(k, t, st):
+        got["moved"] = float(st["x"][mid, 0].mean() - x0)
+        got["speed"] = float(st["v"][mid, 0].mean())
+
+    out = simulate(sc, setting, fps=30.0, n_frames=31, on_frame=on_frame)
+    assert out.stable
+    if flows:  # measured 122 mm, 83 mm/s
+        assert got["moved"] > 0.06 and got["speed"] > 0.03, got
+    else:  # measured 10.9 mm, 5.0 mm/s (on its way to rest: 0.7 mm/s after 1.5 s at grid 128)
+        assert got["moved"] < 0.025 and got["speed"] < 0.01, got

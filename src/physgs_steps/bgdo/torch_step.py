@@ -329,7 +329,7 @@ def return_map(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, pp: Plastic
     if model == "mohr_coulomb":
         c = pp.cohesion[:, None]
         e = eps - c
-        sphi = torch.sin(torch.deg2rad(pp.friction_angle))
+        sphi = torch.tan(torch.deg2rad(pp.friction_angle))  # material.mc_sin_phi
         tr = e.sum(-1)
         e_hat = e - e.mean(-1, keepdim=True)
         hi, lo = e_hat.max(-1).values, e_hat.min(-1).values
@@ -343,8 +343,7 @@ def return_map(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, pp: Plastic
     # drucker_prager
     c = pp.cohesion[:, None]
     e = eps - c
-    sphi = torch.sin(torch.deg2rad(pp.friction_angle))
-    alpha = math.sqrt(2.0 / 3.0) * 2.0 * sphi / (3.0 - sphi)
+    alpha = math.sqrt(2.0) / 3.0 * torch.tan(torch.deg2rad(pp.friction_angle))  # material.dp_alpha
     tr = e.sum(-1)
     e_hat = e - e.mean(-1, keepdim=True)
     n, unit = _safe_unit(e_hat)

@@ -68,10 +68,30 @@ def wave_modulus(elasticity: str, E: float, nu: float) -> float:
     return lam + 2.0 * mu
 
 
+# What a granular material's friction angle phi means (docs/CONTRACTS.md "params.json"): the
+# angle at which it flows in simple shear, its angle of repose, mu_s = tan(phi) as in granular-flow
+# rheologies.  Both return maps flow at constant volume, radially towards the hydrostatic axis, so
+# in steady simple shear (a layer flowing down a slope, a wedge sliding over a deposit) the normal
+# stresses are equal and the shear stress on the slope-parallel planes is tau = p sin(phi_MC) for
+# a Mohr-Coulomb surface of angle phi_MC and tau = p 3 alpha / sqrt(2) for Klar et al.'s
+# Drucker-Prager cone (Davis 1968's strength of a non-dilatant material in plane shear: tan(phi_ss)
+# = sin(phi) cos(psi) / (1 - sin(phi) sin(psi)) with psi = 0).  Taking phi as the Mohr-Coulomb
+# angle itself made a 30-degree sand flow on a 26-28 degree slope (tan 26.6 = sin 30); the
+# surfaces are set so that simple shear flows at tau = p tan(phi): sin(phi_MC) = tan(phi) and
+# alpha = sqrt(2) tan(phi) / 3.  A flow angle needs tan(phi) < 1: phi below 45 degrees.
+FRICTION_ANGLE_MAX = 45.0  # degrees, exclusive
+
+
+def mc_sin_phi(friction_angle_deg: float) -> float:
+    """sin of the Mohr-Coulomb surface's angle for a material that flows in simple shear at
+    ``friction_angle_deg`` (module comment above FRICTION_ANGLE_MAX): tan(phi)."""
+    return math.tan(math.radians(friction_angle_deg))
+
+
 def dp_alpha(friction_angle_deg: float) -> float:
-    """Drucker-Prager cone coefficient ``sqrt(2/3) 2 sin(phi) / (3 - sin(phi))``."""
-    s = math.sin(math.radians(friction_angle_deg))
-    return math.sqrt(2.0 / 3.0) * 2.0 * s / (3.0 - s)
+    """Drucker-Prager cone coefficient alpha (``|dev e| + (3 lam + 2 mu) / (2 mu) tr(e) alpha <= 0``)
+    for a material that flows in simple shear at ``friction_angle_deg``: sqrt(2) tan(phi) / 3."""
+    return math.sqrt(2.0) / 3.0 * math.tan(math.radians(friction_angle_deg))
 
 
 @dataclass(frozen=True)
@@ -125,7 +145,8 @@ class Material:
         if self.plasticity in ("drucker_prager", "mohr_coulomb"):
             if self.friction_angle is None:
                 raise ConfigError(f"{where}: plasticity_params.friction_angle", f"{self.plasticity} plasticity needs a friction angle in degrees")
-            _check_number(f"{where}: plasticity_params.friction_angle", self.friction_angle, lo=0.0, hi=90.0, hi_open=True)
+            _check_number(f"{where}: plasticity_params.friction_angle", self.friction_angle, lo=0.0,
+                          hi=FRICTION_ANGLE_MAX, hi_open=True)
         if self.fracture_strain is not None:
             _check_number(f"{where}: plasticity_params.fracture_strain", self.fracture_strain, lo=0.0, lo_open=True)
             _check_number(f"{where}: plasticity_params.fracture_softening", self.fracture_softening, lo=0.0, lo_open=True)
@@ -186,7 +207,7 @@ class Material:
         row[COL["cohesion"]] = self.cohesion
         row[COL["j_min"]] = self.j_min
         row[COL["j_max"]] = self.j_max
-        row[COL["sin_phi"]] = math.sin(math.radians(self.friction_angle)) if self.friction_angle is not None else 0.0
+        row[COL["sin_phi"]] = mc_sin_phi(self.friction_angle) if self.friction_angle is not None else 0.0
         row[COL["fracture_strain"]] = self.fracture_strain if self.fracture_strain is not None else 0.0
         row[COL["fracture_softening"]] = self.fracture_softening
         row[COL["flip"]] = FLIP_RATIO.get(self.plasticity, 0.0)

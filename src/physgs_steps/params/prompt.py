@@ -54,7 +54,7 @@ _ANSWER_HINTS = {
     "nu": "<Poisson's ratio, 0 <= nu < 0.5>",
     "density": "<kg/m^3>",
     "yield_stress": "<Pa, or null unless plasticity is von_mises>",
-    "friction_angle": "<degrees, or null unless plasticity is mohr_coulomb or drucker_prager>",
+    "friction_angle": "<degrees, the angle of repose (below 45), or null unless plasticity is mohr_coulomb or drucker_prager>",
     "cohesion": "<number, or null unless plasticity is mohr_coulomb or drucker_prager>",
     "rigid": "<true if the object is visually rigid and should move as one rigid body, else false>",
 }

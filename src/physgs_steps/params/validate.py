@@ -30,7 +30,7 @@ REQUIRED_ANSWER_KEYS = ("material", "elasticity", "plasticity", "E", "nu", "dens
 OPTIONAL_ANSWER_KEYS = ("rigid",)  # asked unless pinned; a missing or unreadable answer keeps the material's flag
 
 DEFAULT_LIMITS = {"E_min": 1.0e3, "E_max": 1.0e9, "nu_max": 0.49, "density_min": 1.0, "density_max": 25000.0,
-                  "friction_angle_max": 70.0, "cohesion_max": 0.2}
+                  "friction_angle_max": 44.0, "cohesion_max": 0.2}
 
 
 class AnswerError(ValueError):
@@ -71,11 +71,11 @@ def _check_pins(entry: dict, index: int, kb: dict) -> dict:
         pins["plasticity"] = materials_kb.normalize_plasticity(entry["plasticity"], f"{key}.plasticity")
     checks = {
         "E": lambda v: v > 0, "density": lambda v: v > 0, "nu": lambda v: 0 <= v < 0.5,
-        "yield_stress": lambda v: v > 0, "friction_angle": lambda v: 0 <= v < 90, "cohesion": lambda v: v >= 0,
+        "yield_stress": lambda v: v > 0, "friction_angle": lambda v: 0 <= v < 45, "cohesion": lambda v: v >= 0,
         "fracture_strain": lambda v: v > 0, "fracture_softening": lambda v: v > 0,
     }
     ranges = {"E": "> 0 Pa", "density": "> 0 kg/m^3", "nu": "in [0, 0.5)", "yield_stress": "> 0 Pa",
-              "friction_angle": "in [0, 90) degrees", "cohesion": ">= 0",
+              "friction_angle": "in [0, 45) degrees (the angle of repose)", "cohesion": ">= 0",
               "fracture_strain": "> 0 (principal Hencky strain)", "fracture_softening": "> 0 (inelastic strain to full damage)"}
     for k in ("rigid", "fixed"):
         v = entry.get(k)
