@@ -117,7 +117,10 @@ def test_backup_restored_across_a_resort():
 def test_exclusive_scan_and_mode_errors():
     import taichi as ti
 
+    from physgs_steps.mpm.backend import ensure_taichi
     from physgs_steps.mpm.p2g_sorted import Scan, resolve
+
+    ensure_taichi("cpu")  # ndarrays need Taichi started; under xdist this test may run first in its worker
 
     rng = np.random.default_rng(1)
     for n in (1, 128, 129, 20_000):  # one block, exactly one, two, three levels
