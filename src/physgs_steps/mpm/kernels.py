@@ -523,6 +523,19 @@ def build(spec: Spec) -> SimpleNamespace:
         return out, pushed
 
     @ti.func
+    def _slab_sums(gpart: ti.template(), box: ti.template(), B, G, nq: ti.template()):
+        """The rigid bodies' per-column partial sums gpart[i G + j, b, q] (q < nq) summed over y into
+        gpart[G^2 + i, b, q], per x slab of the node box (a parallel loop at the kernel's top level;
+        a fixed order, so the sums are reproducible)."""
+        for i in range(box[0, 0], box[0, 3]):
+            for b in range(B):
+                for q in ti.static(range(nq)):
+                    acc_s = ti.cast(0.0, ti.f64)
+                    for j in range(box[0, 1], box[0, 4]):
+                        acc_s += gpart[i * G + j, b, q]
+                    gpart[G * G + i, b, q] = acc_s
+
+    @ti.func
     def _is_rigid(m, mcombo: ti.template()):
         r = 0
         if ti.static(rigid_cid >= 0):
@@ -889,13 +902,7 @@ def build(spec: Spec) -> SimpleNamespace:
                                    m * xn[0] * xn[1], m * xn[0] * xn[2], m * xn[1] * xn[2]]
                             for q in ti.static(range(N_GSUM)):
                                 gpart[cix, b, q] += row[q]
-                for i in range(box[0, 0], box[0, 3]):
-                    for b in range(B):
-                        for q in ti.static(range(N_GSUM)):
-                            acc_s = ti.cast(0.0, ti.f64)
-                            for j in range(box[0, 1], box[0, 4]):
-                                acc_s += gpart[i * G + j, b, q]
-                            gpart[G * G + i, b, q] = acc_s
+                _slab_sums(gpart, box, B, G, N_GSUM)
                 ti.loop_config(serialize=True)
                 for b in range(B):
                     acc = ti.Vector.zero(ti.f64, N_GSUM)
@@ -1009,13 +1016,7 @@ def build(spec: Spec) -> SimpleNamespace:
                             row = [dp[0], dp[1], dp[2], xl[0], xl[1], xl[2]]
                             for q in ti.static(range(6)):
                                 gpart[cix, b, q] += row[q]
-                for i in range(box[0, 0], box[0, 3]):
-                    for b in range(B):
-                        for q in ti.static(range(6)):
-                            acc_s = ti.cast(0.0, ti.f64)
-                            for j in range(box[0, 1], box[0, 4]):
-                                acc_s += gpart[i * G + j, b, q]
-                            gpart[G * G + i, b, q] = acc_s
+                _slab_sums(gpart, box, B, G, 6)
                 ti.loop_config(serialize=True)
                 for b in range(B):
                     acc = ti.Vector.zero(ti.f64, 6)
