@@ -29,6 +29,9 @@ from .errors import ConfigError, InputError
 ELASTICITY_MODELS = ("fixed_corotated", "neo_hookean", "stvk_hencky", "volume", "fluid")
 PLASTICITY_MODELS = ("identity", "j_clamp", "von_mises", "drucker_prager", "mohr_coulomb", "fluid")
 MODEL_NAMES = {"elasticity": ELASTICITY_MODELS, "plasticity": PLASTICITY_MODELS}
+# a granular material's friction angle is its angle of repose, which must stay below 45 degrees
+# (mpm/material.py: its return map's surface is set from tan(phi))
+FRICTION_ANGLE_MAX = 45.0  # degrees, exclusive
 
 # Spellings accepted for each canonical name (after lower-casing and mapping spaces and
 # hyphens to "_"; see _squash).  "sigma" is PhysGaussian's name for the Hencky/J-clamp pair.

@@ -79,7 +79,7 @@ def wave_modulus(elasticity: str, E: float, nu: float) -> float:
 # angle itself made a 30-degree sand flow on a 26-28 degree slope (tan 26.6 = sin 30); the
 # surfaces are set so that simple shear flows at tau = p tan(phi): sin(phi_MC) = tan(phi) and
 # alpha = sqrt(2) tan(phi) / 3.  A flow angle needs tan(phi) < 1: phi below 45 degrees.
-FRICTION_ANGLE_MAX = 45.0  # degrees, exclusive
+FRICTION_ANGLE_MAX = kb.FRICTION_ANGLE_MAX  # degrees, exclusive
 
 
 def mc_sin_phi(friction_angle_deg: float) -> float:

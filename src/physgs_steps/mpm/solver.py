@@ -363,7 +363,6 @@ class MPMSolver:
         gbody = np.zeros((nb, 33))  # ... its centre in its initial pose (its level set's frame); last reaction
         gbody[: len(free), 9] = [colliders.COVER * self.materials[k].density * self.dx ** 3 for k in free]
         gbody[: len(free), 17] = [self.materials[k].friction for k in free]
-        self._gbody = _ndarray_from(gbody, ti.f64)
         if free:
             bodies = [np.flatnonzero(mat_sorted == k) for k in free]
             chunks = rigid_mod.reduce_chunks(self.arch, self.n_chunks, sum(len(i) for i in bodies) +
@@ -371,7 +370,6 @@ class MPMSolver:
             self.rigid = rigid_mod.RigidBodies(bodies, xs, mass, self.dx, chunks, [self.materials[k].name for k in free],
                                                rigid_mod.contact_solve(self.arch), full=[full.get(k) for k in free])
             gbody[: len(free), 24:27] = self.rigid._c0
-            self._gbody = _ndarray_from(gbody, ti.f64)
             # per body its level set in its initial pose (the soft material's contact, kernels.py
             # _body_contact): from its full set of particles
             # (the spacing a point stands for from the particles' volumes, as for fixed instances)
@@ -383,14 +381,14 @@ class MPMSolver:
                 phis.append(colliders.level_set(geom, G, self.L))
             self._bphi = _ndarray_from(np.stack(phis), ti.f32)
             self._bpose = (self.rigid.body_c, self.rigid.body_R)
+            bd = self.bound
+            self._kr = rigid_mod.build(bd.counts, bd.boundary, bool(self._static_geoms), self.private_grid)
+            self._launch_reduce, self._launch_scatter = Launcher(self._kr.reduce), Launcher(self._kr.scatter)
+            self._launch_contacts = Launcher(self._kr.reduce)  # its contacts-only instance (substep)
         else:
             self._bphi = ti.ndarray(ti.f32, (1, 1, 1, 1))
             self._bpose = (ti.ndarray(rigid_mod.vec3d, 1), ti.ndarray(rigid_mod.mat3d, 1))
-        if free:
-            b = self.bound
-            self._kr = rigid_mod.build(b.counts, b.boundary, bool(self._static_geoms), self.private_grid)
-            self._launch_reduce, self._launch_scatter = Launcher(self._kr.reduce), Launcher(self._kr.scatter)
-            self._launch_contacts = Launcher(self._kr.reduce)  # its contacts-only instance (substep)
+        self._gbody = _ndarray_from(gbody, ti.f64)  # once, complete (the bodies' initial centres above)
 
     def init_affine(self, iterations: int = AFFINE_ITERATIONS) -> None:
         """Set every particle's C to the velocity gradient the APIC transfer reproduces for the

@@ -18,6 +18,7 @@ import re
 from typing import Any
 
 from .. import materials_kb
+from ..materials_kb import FRICTION_ANGLE_MAX
 from ..errors import ConfigError
 
 PIN_KEYS = ("material", "elasticity", "plasticity", "E", "nu", "density",
@@ -71,11 +72,11 @@ def _check_pins(entry: dict, index: int, kb: dict) -> dict:
         pins["plasticity"] = materials_kb.normalize_plasticity(entry["plasticity"], f"{key}.plasticity")
     checks = {
         "E": lambda v: v > 0, "density": lambda v: v > 0, "nu": lambda v: 0 <= v < 0.5,
-        "yield_stress": lambda v: v > 0, "friction_angle": lambda v: 0 <= v < 45, "cohesion": lambda v: v >= 0,
+        "yield_stress": lambda v: v > 0, "friction_angle": lambda v: 0 <= v < FRICTION_ANGLE_MAX, "cohesion": lambda v: v >= 0,
         "fracture_strain": lambda v: v > 0, "fracture_softening": lambda v: v > 0,
     }
     ranges = {"E": "> 0 Pa", "density": "> 0 kg/m^3", "nu": "in [0, 0.5)", "yield_stress": "> 0 Pa",
-              "friction_angle": "in [0, 45) degrees (the angle of repose)", "cohesion": ">= 0",
+              "friction_angle": f"in [0, {FRICTION_ANGLE_MAX:g}) degrees (the angle of repose)", "cohesion": ">= 0",
               "fracture_strain": "> 0 (principal Hencky strain)", "fracture_softening": "> 0 (inelastic strain to full damage)"}
     for k in ("rigid", "fixed"):
         v = entry.get(k)
