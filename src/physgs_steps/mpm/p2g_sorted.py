@@ -77,10 +77,6 @@ def resolve(mode: str, arch: str, n_particles: int | None = None) -> str:
 SPLITS = (1, 3, 9)
 
 
-def nodes_per_thread(split: int) -> int:
-    return 27 // split
-
-
 @ti.func
 def _slab_offsets(split: ti.template(), s):
     """The stencil offsets (sx, sy) thread ``s`` of a run starts from (0, 0 with split 1)."""
@@ -114,32 +110,23 @@ def acc_add(acc: ti.template(), split: ti.template(), s, fx, dx, mv, affine, mas
     the run accumulator ``acc`` [27 / split, 4] in place (quadratic B-spline weights, as
     kernels._stencil)."""
     w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-    if ti.static(split == 1):
-        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            n = ti.static(9 * i + 3 * j + k)
-            dpos = (ti.Vector([i, j, k], dt=ti.f32) - fx) * dx
-            weight = w[i][0] * w[j][1] * w[k][2]
-            mom = weight * (mv + affine @ dpos)
-            acc[n, 0] += mom[0]
-            acc[n, 1] += mom[1]
-            acc[n, 2] += mom[2]
-            acc[n, 3] += weight * mass
-    else:
-        sx, sy = _slab_offsets(split, s)
-        wx = _pick(w[0][0], w[1][0], w[2][0], sx)
-        for j, k in ti.static(ti.ndrange(3 if split == 3 else 1, 3)):
-            n = ti.static(3 * j + k)
-            jj = sy + j
-            wy = w[j][1]  # split 3: every y offset j; split 9: the thread's own, sy
-            if ti.static(split == 9):
-                wy = _pick(w[0][1], w[1][1], w[2][1], sy)
-            dpos = (ti.Vector([sx, jj, k], dt=ti.f32) - fx) * dx
-            weight = wx * wy * w[k][2]
-            mom = weight * (mv + affine @ dpos)
-            acc[n, 0] += mom[0]
-            acc[n, 1] += mom[1]
-            acc[n, 2] += mom[2]
-            acc[n, 3] += weight * mass
+    sx, sy = _slab_offsets(split, s)
+    # the part's own nodes: all 27 (split 1), one x slab (3), one (x, y) column (9)
+    for i, j, k in ti.static(ti.ndrange(3 if split == 1 else 1, 1 if split == 9 else 3, 3)):
+        n = ti.static(9 * i + 3 * j + k)
+        wx = w[i][0]
+        if ti.static(split != 1):
+            wx = _pick(w[0][0], w[1][0], w[2][0], sx)
+        wy = w[j][1]
+        if ti.static(split == 9):
+            wy = _pick(w[0][1], w[1][1], w[2][1], sy)
+        dpos = (ti.Vector([sx + i, sy + j, k], dt=ti.f32) - fx) * dx
+        weight = wx * wy * w[k][2]
+        mom = weight * (mv + affine @ dpos)
+        acc[n, 0] += mom[0]
+        acc[n, 1] += mom[1]
+        acc[n, 2] += mom[2]
+        acc[n, 3] += weight * mass
 
 
 def make_flush(private_grid: bool, split: int = 1):
@@ -151,13 +138,9 @@ def make_flush(private_grid: bool, split: int = 1):
 
     @ti.func
     def _node(base, s, n: ti.template()):
-        node = base
-        if ti.static(split == 1):
-            node = base + ti.Vector([n // 9, (n // 3) % 3, n % 3])
-        else:
-            sx, sy = _slab_offsets(split, s)
-            node = base + ti.Vector([sx, sy + n // 3, n % 3])
-        return node
+        """Node n of part s (numbered 9i + 3j + k from the part's first offsets, as acc_add)."""
+        sx, sy = _slab_offsets(split, s)
+        return base + ti.Vector([sx + n // 9, sy + (n // 3) % 3, n % 3])
 
     @ti.func
     def flush(acc: ti.template(), base, s, c, grid_v: ti.template(), grid_m: ti.template()):
