@@ -635,3 +635,36 @@ def test_a_tenth_of_a_millimetre_object_ends_stable_or_says_what_to_change(tmp_p
                                               r"raise sim\.max_substeps"):
         simulate.run_final({**ins, "params": str(tmp_path / "p1.json")}, {"frames": str(tmp_path / "final.h5")},
                            cfg, log)
+
+
+def test_stage_profile_folder(tmp_path, monkeypatch):
+    """PHYSGS_PROFILE_DIR: each run of a stage leaves its cProfile statistics (numbered) and logs
+    the costliest functions; a failing stage still leaves its profile."""
+    import pstats
+
+    from physgs_steps import runtime
+
+    prof_dir = tmp_path / "prof"
+    monkeypatch.setenv(runtime.PROFILE_ENV, str(prof_dir))
+
+    def busy_part():
+        return sum(i * i for i in range(20000))
+
+    def stage(inputs, outputs, cfg, log):
+        return {"value": busy_part()}
+
+    log = tmp_path / "log.txt"
+    for _ in range(2):
+        runtime.run_stage("cluster", stage, {}, {}, {}, str(log))
+    files = sorted(p.name for p in prof_dir.iterdir())
+    assert files == ["cluster-0.prof", "cluster-1.prof"]
+    names = {f[2] for f in pstats.Stats(str(prof_dir / "cluster-1.prof")).stats}
+    assert "busy_part" in names
+    assert "profile of stage cluster" in log.read_text()
+
+    def broken(inputs, outputs, cfg, log):
+        raise ValueError("boom")
+
+    with pytest.raises(SystemExit):
+        runtime.run_stage("fill", broken, {}, {}, {}, str(log))
+    assert (prof_dir / "fill-0.prof").is_file()

@@ -319,7 +319,7 @@ def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, lo
     _reset_cuda_peak()
     t0 = time.perf_counter()
     try:
-        summary = fn(dict(inputs), dict(outputs), cfg, log) or {}
+        summary = _profiled(name, fn, log)(dict(inputs), dict(outputs), cfg, log) or {}
     except PhysGSError as e:
         log.error("stage %s failed: %s", name, e)
         _remove_outputs(outputs, log)
@@ -342,6 +342,38 @@ def run_stage(name: str, fn: StageFn, inputs: dict, outputs: dict, cfg: dict, lo
              summary["peak_rss_mb"], {k: str(v) for k, v in outputs.items()})
     log.info("%s%s", SUMMARY_PREFIX, json.dumps(summary, sort_keys=True, default=_summary_default))
     return summary
+
+
+PROFILE_ENV = "PHYSGS_PROFILE_DIR"
+
+
+def _profiled(name: str, fn: StageFn, log: logging.Logger) -> StageFn:
+    """``fn`` itself, or, where the environment variable PHYSGS_PROFILE_DIR names a folder,
+    ``fn`` run under cProfile: the statistics go to ``<dir>/<stage>-<n>.prof`` (``n`` counts
+    the runs of that stage in the folder) and the 30 costliest functions by own time to the
+    stage's log.  For finding where a stage's fixed costs go (README "GPU")."""
+    folder = os.environ.get(PROFILE_ENV)
+    if not folder:
+        return fn
+
+    def run(*args):
+        import cProfile
+        import io
+        import pstats
+
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        n = len(list(Path(folder).glob(f"{name}-*.prof")))
+        out = Path(folder) / f"{name}-{n}.prof"
+        prof = cProfile.Profile()
+        try:
+            return prof.runcall(fn, *args)
+        finally:
+            prof.dump_stats(str(out))
+            text = io.StringIO()
+            pstats.Stats(prof, stream=text).sort_stats("tottime").print_stats(30)
+            log.info("profile of stage %s -> %s\n%s", name, out, text.getvalue())
+
+    return run
 
 
 # The last log line of a stage: its summary as one JSON object (the benchmark reads time spent
