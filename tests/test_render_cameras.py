@@ -91,3 +91,38 @@ def test_check_view_inside_and_behind():
     assert v.inside_box and 0.4 < v.frac_behind < 0.6
     away = Camera(look_at([2.0, 0.0, 0.0], [3.0, 0.0, 0.0]), intrinsics_from_fov(40, 64, 64), 64, 64)
     assert check_view(means, away, 0.01).frac_behind == 1.0
+    assert v.inside_box is True and check_view(means, outside, 0.01).inside_box is None  # no box where nothing is behind
+
+
+def test_check_view_matches_numpy_reference():
+    """The torch check (one read-back) gives the fractions and the percentile box of the plain numpy
+    computation, for cameras outside, inside and at the edge of the centres, and on a subsample."""
+    import torch
+
+    rng = np.random.default_rng(1)
+    means = rng.normal(0.0, 0.1, (30001, 3))
+    cams = [orbit_cameras([0, 0, 0], 1.0, 1, 20.0, 40.0, 64, 48)[0],
+            Camera(look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0]), intrinsics_from_fov(60, 64, 48), 64, 48),
+            Camera(look_at([0.0, 0.23, 0.0], [0.0, -1.0, 0.0]), intrinsics_from_fov(50, 64, 48), 64, 48),
+            Camera(look_at([0.31, 0.0, 0.0], [1.0, 0.0, 0.0]), intrinsics_from_fov(50, 64, 48), 64, 48)]
+    for cam in cams:
+        m = means[:: int(np.ceil(len(means) / 20000))]
+        pc = m @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3]
+        z = pc[:, 2]
+        front = z >= 0.01
+        zf = np.maximum(z, 0.01)
+        u = cam.K[0, 0] * pc[:, 0] / zf + cam.K[0, 2]
+        v_ = cam.K[1, 1] * pc[:, 1] / zf + cam.K[1, 2]
+        in_img = front & (u >= 0) & (u < cam.width) & (v_ >= 0) & (v_ < cam.height)
+        lo, hi = np.percentile(m, [2.0, 98.0], axis=0)
+        inside = bool(((cam.position >= lo) & (cam.position <= hi)).all())
+        for arg in (means, torch.from_numpy(means).float()):
+            got = check_view(arg, cam, 0.01)
+            assert got.n == len(m)
+            tol = 1e-12 if isinstance(arg, np.ndarray) else 2e-3  # float32 centres move a few across the bounds
+            assert abs(got.frac_behind - (1.0 - front.mean())) <= tol
+            assert abs(got.frac_in_view - in_img.mean()) <= tol
+            if got.frac_behind > 0:
+                assert got.inside_box == inside
+            else:
+                assert got.inside_box is None

@@ -140,6 +140,12 @@ def test_nonfinite_frame_policies():
     assert mask.tolist() == [i in (2, 5) for i in range(10)]
     with pytest.raises(RenderError, match="10 of 10"):
         check_frame(9, np.full((10, 3), np.nan, np.float32), F, "hide")
+    # the finite-sum shortcut: huge finite float32 values pass, opposite infinities are caught
+    big = np.full((10, 3), np.finfo(np.float32).max, np.float32)
+    assert check_frame(1, big, np.tile(np.eye(3, dtype=np.float32), (10, 1, 1)), "error") is None
+    F2 = np.tile(np.eye(3, dtype=np.float32), (10, 1, 1))
+    F2[1, 2, 2], F2[8, 0, 1] = np.inf, -np.inf
+    assert check_frame(2, np.zeros((10, 3), np.float32), F2, "hide").tolist() == [i in (1, 8) for i in range(10)]
 
 
 def test_view_dependent_colour_follows_rotation():

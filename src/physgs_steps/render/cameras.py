@@ -236,18 +236,24 @@ class ViewCheck:
     Attributes:
         n: number of centres checked.
         frac_behind: fraction with camera depth below the near plane (or behind the camera).
-        inside_box: whether the camera centre lies inside the 2nd-98th percentile box of the centres.
+        inside_box: whether the camera centre lies inside the 2nd-98th percentile box of the
+            centres; None where no centre lies behind the near plane (the box is then not
+            computed: it only matters for telling a camera inside the object from one that
+            clips a few gaussians, and the percentiles were most of a frame's check).
         frac_in_view: fraction in front of the near plane that project inside the image.
     """
 
     n: int
     frac_behind: float
-    inside_box: bool
+    inside_box: bool | None
     frac_in_view: float
 
 
 def check_view(means, camera: Camera, near: float, max_rows: int = 20000) -> ViewCheck:
     """Where the gaussians are relative to ``camera`` (a strided subsample of at most ``max_rows``).
+
+    The work stays on the centres' device (float64) with one read-back of two fractions; the
+    percentile box only where some centre lies behind the near plane.
 
     Args:
         means: [N, 3] torch tensor or array of centres in the camera's world frame.
@@ -259,19 +265,25 @@ def check_view(means, camera: Camera, near: float, max_rows: int = 20000) -> Vie
     m = torch.as_tensor(means)
     if m.shape[0] > max_rows:
         m = m[:: int(math.ceil(m.shape[0] / max_rows))]
-    m = m.detach().to("cpu", torch.float64).numpy()
     n = int(m.shape[0])
     if n == 0:
-        return ViewCheck(0, 0.0, False, 0.0)
-    pc = m @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
+        return ViewCheck(0, 0.0, None, 0.0)
+    m = m.detach().to(torch.float64)  # [n, 3]
+    view = torch.as_tensor(camera.viewmat, dtype=torch.float64, device=m.device)  # [4, 4]
+    pc = m @ view[:3, :3].T + view[:3, 3]  # [n, 3] camera frame
     z = pc[:, 2]
     front = z >= near
-    frac_behind = 1.0 - float(front.mean())
-    lo, hi = np.percentile(m, [2.0, 98.0], axis=0)
-    pos = camera.position
-    inside = bool(((pos >= lo) & (pos <= hi)).all())
-    zf = np.maximum(z, near)
-    u = camera.K[0, 0] * pc[:, 0] / zf + camera.K[0, 2]
-    v = camera.K[1, 1] * pc[:, 1] / zf + camera.K[1, 2]
+    zf = torch.clamp_min(z, near)
+    K = camera.K
+    u = float(K[0, 0]) * pc[:, 0] / zf + float(K[0, 2])
+    v = float(K[1, 1]) * pc[:, 1] / zf + float(K[1, 2])
     in_img = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    return ViewCheck(n, frac_behind, inside, float(in_img.mean()))
+    frac_front, frac_in = torch.stack([front.double().mean(), in_img.double().mean()]).tolist()  # one read-back
+    frac_behind = 1.0 - frac_front
+    inside = None
+    if frac_behind > 0.0:
+        q = torch.tensor([0.02, 0.98], dtype=torch.float64, device=m.device)
+        lo, hi = torch.quantile(m, q, dim=0).cpu().numpy()  # linear interpolation, as np.percentile
+        pos = camera.position
+        inside = bool(((pos >= lo) & (pos <= hi)).all())
+    return ViewCheck(n, frac_behind, inside, frac_in)

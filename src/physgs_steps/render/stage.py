@@ -39,7 +39,7 @@ from ..prepare import load_transform
 from ..runtime import project_root, write_json
 from ..scene_io import load_gaussians
 from . import cameras as C
-from .deform import NONFINITE_POLICIES, CarrierMap, SourceMap, check_frame, deform, rest_gaussians
+from .deform import NONFINITE_POLICIES, CarrierMap, SourceMap, check_frame, covers_all, deform, rest_gaussians
 from .renderer import Renderer, RenderSettings, resolve_backend
 from .video import FrameDir, VideoWriter, contact_sheet, sheet_indices, write_png
 
@@ -282,6 +282,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
              index.numel(), frames.m, "identity" if cmap.identity else "budget", cmap.index.shape[1],
              static_rows.size, time.perf_counter() - t0)
     timings["carrier"] = round(time.perf_counter() - t0, 3)
+    full = covers_all(index, scene.n)  # once: deform() would check it every frame
     sel = list(range(0, frames.n_frames, int(rcfg["every_nth"])))
     degree = renderer.degree(rest)
     log.info("%d gaussians, %d simulated, %d of %d frames to render (%d distinct stored states), SH degree %d",
@@ -339,7 +340,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                         hide = None if bad is None else cmap.hidden(torch.as_tensor(bad))
                         if hide is not None:
                             hidden[t] = int(hide.sum())
-                        g = deform(rest, index, xs, Fs, smap, degree > 0, hide)
+                        g = deform(rest, index, xs, Fs, smap, degree > 0, hide, full)
                         t_deform += time.perf_counter() - t0
                         obj = g.means[index] if hide is None else g.means[index[~hide.to(dev)]]  # the simulated object
                         check_camera(t, obj, cam, renderer.settings.near, clipped)
