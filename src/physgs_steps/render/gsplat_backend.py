@@ -66,7 +66,7 @@ def render_frames(frames: list[Gaussians], cameras: list[Camera], background, sh
         background: [3] colour.
         sh_degree: SH bands used (capped by the coefficients present).
     Returns:
-        ([B, H, W, 3] uint8 images on the CPU, [B, H, W] float alpha on the CPU).
+        ([B, H, W, 3] uint8 images on the CPU, [B, H, W] float alpha on the GPU).
     """
     from gsplat import rasterization
 
@@ -90,7 +90,7 @@ def render_frames(frames: list[Gaussians], cameras: list[Camera], background, sh
                                       near_plane=near, far_plane=far, eps2d=eps2d, sh_degree=None,
                                       backgrounds=bg, rasterize_mode="classic", covars=covars,
                                       packed=False)  # gsplat 1.5 rejects backgrounds when packed
-    return _to_uint8(rgb[:, 0]).cpu(), alpha[:, 0, ..., 0].float().cpu()
+    return _to_uint8(rgb[:, 0]).cpu(), alpha[:, 0, ..., 0].float()
 
 
 def render_views(g: Gaussians, cameras: list[Camera], background, sh_degree: int,

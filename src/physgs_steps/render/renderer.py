@@ -84,11 +84,13 @@ class Renderer:
         """SH bands used for these gaussians: the configured cap or what the coefficients hold."""
         return min(int(self.settings.sh_degree), sh_degree_from_k(int(g.sh.shape[1])))
 
-    def render_frames(self, frames: list[Gaussians], cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    def render_frames(self, frames: list[Gaussians], cameras: list[Camera]) -> tuple[np.ndarray, torch.Tensor]:
         """Frame i seen by camera i.
 
         Returns:
-            ([B, H, W, 3] uint8, [B, H, W] float32 alpha).
+            ([B, H, W, 3] uint8 on the host, [B, H, W] float32 alpha as a torch tensor on the
+            renderer's device: the stage reduces it there to a coverage figure per frame; at
+            1080p copying it to the host cost more than the images).
         """
         if len(frames) != len(cameras):
             raise ValueError(f"{len(frames)} frames but {len(cameras)} cameras")
@@ -97,9 +99,9 @@ class Renderer:
             from .gsplat_backend import render_frames
 
             rgb, alpha = render_frames(frames, cameras, s.background, self.degree(frames[0]), s.near, s.far, s.eps2d)
-            return rgb.numpy(), alpha.numpy()
+            return rgb.numpy(), alpha
         out = [self._cpu_one(g, cam) for g, cam in zip(frames, cameras)]
-        return np.stack([o[0] for o in out]), np.stack([o[1] for o in out])
+        return np.stack([o[0] for o in out]), torch.from_numpy(np.stack([o[1] for o in out]))
 
     def render_views(self, g: Gaussians, cameras: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
         """One set of gaussians from every camera (cameras of one image size).

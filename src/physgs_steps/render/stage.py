@@ -363,7 +363,8 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                 t_render += time.perf_counter() - t0
                 for k, t in enumerate(ids):
                     pos = b0 + k
-                    coverage.append(float((alphas[k] > COVERED_ALPHA).mean()))
+                    a = alphas[k]  # torch, on the renderer's device
+                    coverage.append(int((a > COVERED_ALPHA).sum()) / a.numel())
                     vw.append(imgs[k])
                     if frame_dir is not None:
                         frame_dir.add(t, imgs[k])
