@@ -163,3 +163,32 @@ def test_final_h5_float16_error_budget_and_held_frames(tmp_path):
         w = FinalWriter(h, np.arange(2), np.arange(2) / 30.0)
         with pytest.raises(SimulationError, match="float16"):
             w.frame(0, np.zeros((2, 3)), np.full((2, 3, 3), 1e6))
+
+
+def test_final_frames_block_reads_match_single_rows(tmp_path, monkeypatch):
+    """FinalFrames reads rows in blocks: any access order (forward, backward, repeated, held
+    frames) gives exactly the rows h5py reads one by one, with blocks of 1, 3 and all rows."""
+    import physgs_steps.final_frames as ff
+
+    rng = np.random.default_rng(6)
+    m, t = 40, 9
+    x = rng.uniform(0.2, 0.8, (t, m, 3)).astype(np.float32)
+    F = (np.eye(3) + rng.normal(0.0, 0.2, (t, m, 3, 3))).astype(np.float32)
+    with h5py.File(tmp_path / "final.h5", "w") as h:
+        w = FinalWriter(h, np.arange(m), np.arange(t) / 30.0)
+        for k in range(t):
+            w.hold(k) if k == 5 else w.frame(k, x[k], F[k])
+        w.finish({})
+    with h5py.File(tmp_path / "final.h5", "r") as h:
+        rows = h["frame_row"][...]
+        ref_x, ref_f = h["x"][...], h["F_minus_I"][...]
+    order = list(range(t)) + list(reversed(range(t))) + [4, 4, 0, 8, 2]
+    for rows_per_block in (1, 3, t):
+        monkeypatch.setattr(ff, "READ_BLOCK_BYTES", rows_per_block * m * (3 * 4 + 9 * 2))
+        with FinalFrames(tmp_path / "final.h5") as fr:
+            for k in order:
+                xk, fk = fr.x(k), fr.F(k)
+                np.testing.assert_array_equal(xk, ref_x[rows[k]])
+                np.testing.assert_array_equal(fk, ref_f[rows[k]].astype(np.float32) + np.eye(3, dtype=np.float32))
+                xk[:] = -1.0  # a caller's change does not reach the cached block
+                assert fr.x(k)[0, 0] == ref_x[rows[k]][0, 0]
