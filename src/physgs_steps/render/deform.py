@@ -122,16 +122,24 @@ class SourceMap:
     def identity() -> "SourceMap":
         return SourceMap(np.eye(3), 1.0, np.zeros(3), np.zeros(3))
 
+    def _tensors(self, dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(R, c_sim, c_src) as tensors, made once per dtype and device (a host-to-device copy
+        each otherwise: three a frame)."""
+        cache = self.__dict__.setdefault("_cache", {})
+        key = (dtype, str(device))
+        if key not in cache:
+            cache[key] = tuple(torch.as_tensor(a, dtype=dtype, device=device)
+                               for a in (self.R, self.sim_center, self.src_center))
+        return cache[key]
+
     def points(self, x: torch.Tensor) -> torch.Tensor:
         """[..., 3] sim-frame points -> source frame."""
-        R = torch.as_tensor(self.R, dtype=x.dtype, device=x.device)
-        c_sim = torch.as_tensor(self.sim_center, dtype=x.dtype, device=x.device)
-        c_src = torch.as_tensor(self.src_center, dtype=x.dtype, device=x.device)
+        R, c_sim, c_src = self._tensors(x.dtype, x.device)
         return (x - c_sim) @ R / self.scale + c_src
 
     def linear(self, F: torch.Tensor) -> torch.Tensor:
         """[..., 3, 3] sim-frame linear maps (deformation gradients) -> ``R^T F R``."""
-        R = torch.as_tensor(self.R, dtype=F.dtype, device=F.device)
+        R = self._tensors(F.dtype, F.device)[0]
         return matmul3(matmul3(R.T, F), R)
 
     def covariances(self, cov: torch.Tensor) -> torch.Tensor:
@@ -239,7 +247,7 @@ def covers_all(index: torch.Tensor, n: int) -> bool:
     return index.numel() == n and bool((index == torch.arange(n, device=index.device)).all())
 
 
-def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: torch.Tensor, smap: SourceMap,
+def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: torch.Tensor, smap: SourceMap | None,
            with_rotation: bool, hide: torch.Tensor | None = None, full: bool | None = None) -> Gaussians:
     """Gaussians of one simulated frame, in the source frame.
 
@@ -248,7 +256,10 @@ def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: tor
         index: [Nv] int64 rows of ``rest`` that the simulation moved (``gaussian_index``).
         x_sim: [Nv, 3] simulated positions (sim frame).
         F_sim: [Nv, 3, 3] deformation gradients (sim frame).
-        smap: the map back to the source frame.
+        smap: the map back to the source frame; None where ``x_sim`` and ``F_sim`` are in the
+            source frame already (the render stage maps the stored particles before the
+            carrier spreads them over the gaussians: the map then runs on thousands of rows,
+            not on every gaussian).
         with_rotation: compute the polar rotations for view-dependent SH (degree > 0).
         hide: optional [Nv] bool rows to leave out of this frame (drawn with opacity 0).
         full: ``covers_all(index, rest.n)`` where the caller knows it (the render stage computes
@@ -257,8 +268,11 @@ def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: tor
         :class:`Gaussians` with N rows (rows not in ``index`` stay at rest).
     """
     dev = rest.means.device
-    x = smap.points(x_sim.to(dev, torch.float64)).float()
-    Fs = smap.linear(F_sim.to(dev, torch.float32))  # float32: R is orthonormal, |F| ~ 1
+    if smap is None:
+        x, Fs = x_sim.to(dev, torch.float32), F_sim.to(dev, torch.float32)
+    else:
+        x = smap.points(x_sim.to(dev, torch.float64)).float()
+        Fs = smap.linear(F_sim.to(dev, torch.float32))  # float32: R is orthonormal, |F| ~ 1
     opac = rest.opacities
     if hide is not None:
         x = torch.where(hide[:, None].to(dev), torch.zeros_like(x), x)
@@ -266,7 +280,7 @@ def deform(rest: Gaussians, index: torch.Tensor, x_sim: torch.Tensor, F_sim: tor
     if full is None:
         full = covers_all(index, rest.n)
     idx = index.to(dev)
-    cov_rows = matmul3(matmul3(Fs, rest.covars[idx]), Fs.transpose(1, 2))  # [Nv, 3, 3] F Sigma F^T
+    cov_rows = matmul3(matmul3(Fs, rest.covars if full else rest.covars[idx]), Fs.transpose(1, 2))  # [Nv, 3, 3] F Sigma F^T
     rot_rows = polar_rotation(Fs) if with_rotation else None
     if full:
         means, covars, rots = x, cov_rows, rot_rows
@@ -314,7 +328,7 @@ class CarrierMap:
     index: torch.Tensor
     weight: torch.Tensor
     offset: torch.Tensor | None
-    chunk: int = 1 << 18
+    chunk: int = 1 << 19  # gaussians per pass of apply (300k in one: fewer launches)
     cut: float = math.inf  # sim-frame distance beyond which a driver's prediction counts as torn off
 
     @property
@@ -323,7 +337,7 @@ class CarrierMap:
 
     @staticmethod
     def build(carrier, particle_index: np.ndarray, rest_means_sim: np.ndarray, x0: np.ndarray,
-              device="cpu") -> "CarrierMap":
+              device="cpu", length_scale: float = 1.0) -> "CarrierMap":
         """Resolve a :class:`~physgs_steps.carrier.Carrier` against final.h5.
 
         Args:
@@ -331,6 +345,10 @@ class CarrierMap:
             particle_index: [M] rows of particles.h5 stored in final.h5 (its columns).
             rest_means_sim: [N, 3] scene.ply centres (sim frame).
             x0: [M, 3] stored positions at frame 0 (sim frame).
+            length_scale: lengths of the frame ``rest_means_sim`` and ``x0`` are given in per
+                sim-frame unit (the tear distance is the carrier's spacing times this): 1 in
+                the sim frame, ``1 / s`` where both are given in the source frame
+                (:class:`SourceMap`), and :meth:`apply` then takes source-frame states.
         Drivers that final.h5 does not store (instances the simulation left out) count as
         absent: a gaussian without any stored driver is drawn at rest.
         The work is [N, K] gathers, done on ``device`` (1M gaussians x 8 drivers: numpy took
@@ -358,7 +376,7 @@ class CarrierMap:
             xs0 = torch.from_numpy(np.ascontiguousarray(x0)).to(dev).double()  # [M, 3]
             offset = (means[rows, None, :] - xs0[col]).float()  # [Ns, K, 3]
         spacing = float(getattr(carrier, "spacing", 0.0) or 0.0)
-        cut = TEAR_SPACINGS * spacing if spacing > 0 else math.inf
+        cut = TEAR_SPACINGS * spacing * float(length_scale) if spacing > 0 else math.inf
         return CarrierMap(rows=rows, index=col, weight=w, offset=offset, cut=cut)
 
     def apply(self, x: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

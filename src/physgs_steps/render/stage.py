@@ -273,7 +273,11 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     rest = rest_gaussians(scene, smap, dev)
     timings["rest_gaussians"] = round(time.perf_counter() - t0, 3)
     t0 = time.perf_counter()
-    cmap = CarrierMap.build(carrier, frames.particle_index, scene.means, frames.x(0), dev)
+    # the carrier works in the source frame: each frame's stored particles are mapped there (a few
+    # thousand rows) before it spreads them over the gaussians, which then need no map
+    x0_src = smap.points(torch.from_numpy(frames.x(0)).double()).numpy()
+    means_src = smap.points(torch.from_numpy(scene.means).double()).numpy()
+    cmap = CarrierMap.build(carrier, frames.particle_index, means_src, x0_src, dev, length_scale=1.0 / smap.scale)
     index = cmap.rows
     moving = torch.zeros(scene.n, dtype=torch.bool, device=index.device)
     moving[index] = True
@@ -336,11 +340,13 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                         if bad is not None:
                             log.warning("frame %d: %d stored particles with NaN/inf: the gaussians they carry are hidden",
                                         t, int(bad.sum()))
-                        xs, Fs = cmap.apply(torch.from_numpy(x).to(dev), torch.from_numpy(F).to(dev))
+                        x_src = smap.points(torch.from_numpy(x).to(dev, torch.float64)).float()  # [M, 3]
+                        F_src = smap.linear(torch.from_numpy(F).to(dev))  # [M, 3, 3]
+                        xs, Fs = cmap.apply(x_src, F_src)  # [Ns, 3], [Ns, 3, 3] source frame
                         hide = None if bad is None else cmap.hidden(torch.as_tensor(bad))
                         if hide is not None:
                             hidden[t] = int(hide.sum())
-                        g = deform(rest, index, xs, Fs, smap, degree > 0, hide, full)
+                        g = deform(rest, index, xs, Fs, None, degree > 0, hide, full)
                         t_deform += time.perf_counter() - t0
                         obj = g.means[index] if hide is None else g.means[index[~hide.to(dev)]]  # the simulated object
                         check_camera(t, obj, cam, renderer.settings.near, clipped)
