@@ -1,6 +1,22 @@
-"""final.h5 layouts: bytes, write time and one streaming read, on real simulated frames.
+"""final.h5 layouts: bytes, write time and one streaming read, on real simulated frames;
+final_sim's per-frame host work (writer + physical figures), inline against the writer thread.
 
     python benchmarks/bench_final_h5.py results/bear/sim/<sim_id>/<step>/final.h5 [--repeat 3]
+    python benchmarks/bench_final_h5.py --callback [--particles 5000 60000] [--frames 150]
+                                        [--substep-ms 6] [--final-sim 5000] [--backend cpu]
+
+``--callback``: synthetic frames (a drifting, deforming block) through ``FrameSink`` at each
+particle count, once inline (``PHYSGS_FINAL_WRITER_THREAD=0``) and once with the writer thread,
+with the main thread between frames doing ``--substep-ms`` of stand-in substep work of three
+kinds: ``python`` (a Python loop: Taichi's launch overhead), ``gil-wait`` (a C call that waits
+holding the GIL: Taichi's device synchronisation does), ``sleep`` (a wait that releases the GIL: final_sim's wait for the GPU with
+``runner.gil_free_device_wait``).
+Per frame it prints the callback ms (the main thread's time handing the frame over, waiting
+for a full queue and, spread over the frames, the final drain: what ``stats.write_seconds``
+counts), the writer's busy ms (the work itself, wherever it ran) and the wall ms (substep
+stand-in + callback: the overlap shows as wall < substep + busy). ``--final-sim N``: then the
+final_sim stage end to end on a tiny scene of N stored particles (two blocks, 30 frames on
+``--backend``), inline and threaded, after one run that compiles the kernels.
 
 Reads the frames of a final.h5 (format physgs-final/2, written by final_sim) and writes them
 again in each layout, one frame per chunk as the renderer reads them:
@@ -19,6 +35,8 @@ checked in tests/test_carrier.py.)
 from __future__ import annotations
 
 import argparse
+import ctypes
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -65,11 +83,144 @@ def read(path: Path, kind: str) -> float:
     return time.perf_counter() - t0
 
 
+def _stand_in(kind: str, ms: float) -> None:
+    """ms of the main thread's substep work between two frames (module docstring)."""
+    if ms <= 0:
+        return
+    if kind == "sleep":
+        time.sleep(ms / 1e3)
+    elif kind == "gil-wait":
+        _LIBC.usleep(int(ms * 1e3))   # ctypes.PyDLL: the call keeps the GIL
+    else:
+        end = time.perf_counter() + ms / 1e3
+        n = 0
+        while time.perf_counter() < end:
+            n += 1
+
+
+_LIBC = ctypes.PyDLL(None)
+
+
+def callback_bench(m: int, frames: int, substep_ms: float, kind: str, thread: bool) -> dict:
+    """One pass of ``frames`` synthetic frames of m particles through FrameSink; ms per frame."""
+    from physgs_steps.final_frames import FinalWriter, FrameSink
+    from physgs_steps.physical import PhysicalFigures
+
+    rng = np.random.default_rng(0)
+    x0 = rng.uniform(0.3, 0.7, (m, 3)).astype(np.float32)
+    v = rng.normal(0.0, 0.002, (m, 3)).astype(np.float32)
+    A = rng.normal(0.0, 0.01, (m, 3, 3)).astype(np.float32)
+    eye = np.eye(3, dtype=np.float32)
+    with tempfile.TemporaryDirectory() as d:
+        with h5py.File(Path(d) / "final.h5", "w") as h:
+            writer = FinalWriter(h, np.arange(m), np.arange(frames) / 30.0)
+            figures = PhysicalFigures(frames)
+            sink = FrameSink(writer, figures, thread=thread)
+            cb = sub = 0.0
+            t_all = time.perf_counter()
+            try:
+                for k in range(frames):
+                    if k:
+                        t0 = time.perf_counter()
+                        _stand_in(kind, substep_ms)
+                        sub += time.perf_counter() - t0
+                    xs, Fs = x0 + np.float32(k) * v, eye + np.float32(k / frames) * A   # fresh arrays, as gather_rows
+                    t0 = time.perf_counter()
+                    sink.frame(k, xs, Fs)
+                    cb += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                sink.close()
+                cb += time.perf_counter() - t0
+            finally:
+                sink.abort()
+            wall = time.perf_counter() - t_all
+            writer.finish({"physical": figures.result(np.arange(frames) / 30.0)})
+    return {"callback": cb / frames * 1e3, "busy": sink.busy_seconds / frames * 1e3,
+            "substep": sub / frames * 1e3, "wall": wall / frames * 1e3}
+
+
+def final_sim_bench(n: int, backend: str) -> None:
+    """final_sim end to end on two blocks of n/2 stored particles each, inline and threaded."""
+    import copy
+    import json
+    import logging
+
+    from physgs_steps import simulate
+    from physgs_steps.config import section_defaults
+    from physgs_steps.runtime import write_json
+
+    log = logging.getLogger("bench_final_h5")
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        rng = np.random.default_rng(0)
+        xs, labels, filled = [], [], []
+        for lab, lo, hi in ((0, (0.3, 0.35, 0.3), (0.5, 0.6, 0.5)), (1, (0.55, 0.4, 0.3), (0.7, 0.55, 0.45))):
+            lo, hi = np.asarray(lo), np.asarray(hi)
+            for is_filled, count in ((False, n // 2), (True, n // 4)):
+                xs.append(lo + (hi - lo) * rng.random((count, 3)))
+                labels.append(np.full(count, lab))
+                filled.append(np.full(count, is_filled))
+        x, label, fl = np.concatenate(xs), np.concatenate(labels).astype(np.int32), np.concatenate(filled)
+        order = np.r_[np.flatnonzero(~fl), np.flatnonzero(fl)]
+        x, label, fl = x[order], label[order], fl[order]
+        with h5py.File(d / "particles.h5", "w") as f:
+            f["x"], f["label"], f["filled"] = x.astype(np.float32), label, fl
+            f["vol"] = np.full(len(x), 0.2 * 0.25 * 0.2 / len(x), np.float32)
+            f.attrs["n_gaussians"] = int((~fl).sum())
+        inst = {"elasticity": "fixed_corotated", "plasticity": "identity", "nu": 0.3, "plasticity_params": {},
+                "velocity": [0.3, 0.0, 0.0]}
+        write_json(d / "params.json", {"instances": [
+            {**inst, "label": 0, "name": "bear", "material": "jelly", "E": 5.0e4, "density": 1050.0},
+            {**inst, "label": 1, "name": "can", "material": "jelly", "E": 2.0e5, "density": 1200.0}],
+            "backend": "prior", "prompt": "bench", "history": []})
+        sim = copy.deepcopy(section_defaults("sim"))
+        sim.update({"n_grid": 32, "n_frames": 30, "backend": backend})
+        cfg = {"sim": sim, "scene": {"dynamics": {"ground": {"height": 0.1}}}, "device": backend}
+        inputs = {"particles": str(d / "particles.h5"), "params": str(d / "params.json")}
+        print(f"\nfinal_sim end to end: {int((~fl).sum())} stored of {len(x)} particles, 30 frames, "
+              f"grid 32^3, backend {backend}")
+        print(f"{'run':<16} {'stage s':>8} {'substeps s':>10} {'write s':>8} {'writer busy s':>13}")
+        runs = [("warm-up", "1"), ("inline", "0"), ("thread", "1"), ("inline", "0"), ("thread", "1")]
+        for name, env in runs:
+            os.environ["PHYSGS_FINAL_WRITER_THREAD"] = env
+            out = d / f"final_{name}.h5"
+            t0 = time.perf_counter()
+            simulate.run_final(inputs, {"frames": str(out)}, cfg, log)
+            wall = time.perf_counter() - t0
+            with h5py.File(out) as f:
+                st = json.loads(f.attrs["stats"])
+            print(f"{name:<16} {wall:8.2f} {st['simulate_seconds']:10.2f} {st['write_seconds']:8.3f} "
+                  f"{st['writer_busy_seconds']:13.3f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("final_h5")
+    ap.add_argument("final_h5", nargs="?")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--callback", action="store_true", help="final_sim's per-frame host work, inline vs thread")
+    ap.add_argument("--particles", type=int, nargs="*", default=[5000, 60000])
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--substep-ms", type=float, default=6.0,
+                    help="stand-in substep work per frame (H100, bear: 0.87 s / 150 frames)")
+    ap.add_argument("--kinds", nargs="+", default=["python", "gil-wait", "sleep"])
+    ap.add_argument("--final-sim", type=int, default=0, metavar="N", help="then final_sim end to end, N stored particles")
+    ap.add_argument("--backend", default="cpu")
     args = ap.parse_args()
+    if args.callback:
+        print(f"per frame, ms ({args.frames} frames; best of --repeat {args.repeat} by wall)")
+        print(f"{'particles':>9} {'stand-in':<9} {'mode':<7} {'callback':>9} {'busy':>7} {'substep':>8} {'wall':>7}")
+        for m in args.particles:
+            for kind in args.kinds:
+                for thread in (False, True):
+                    r = min((callback_bench(m, args.frames, args.substep_ms, kind, thread) for _ in range(args.repeat)),
+                            key=lambda r: r["wall"])
+                    print(f"{m:9d} {kind:<9} {'thread' if thread else 'inline':<7} {r['callback']:9.2f} "
+                          f"{r['busy']:7.2f} {r['substep']:8.2f} {r['wall']:7.2f}")
+        if args.final_sim:
+            final_sim_bench(args.final_sim, args.backend)
+        return
+    if not args.final_h5:
+        ap.error("give a final.h5 (or --callback)")
     with FinalFrames(args.final_h5) as fr:
         rows = sorted(set(fr.frame_row.tolist()))
         xs = [np.asarray(fr.h5["x"][r], np.float32) for r in rows]

@@ -1,5 +1,6 @@
 """The particle budget and the gaussian carrier (physgs_steps.carrier, render.deform.CarrierMap),
-and final.h5's storage and error budget (physgs_steps.final_frames)."""
+final.h5's storage and error budget (physgs_steps.final_frames) and final_sim's per-frame host
+work: the writer and the physical figures against the code they replaced (issue #18)."""
 from __future__ import annotations
 
 import h5py
@@ -10,7 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from physgs_steps.carrier import build_carrier, load_carrier, particle_spacing, representatives, write_carrier
 from physgs_steps.errors import InputError, SimulationError
-from physgs_steps.final_frames import F16_BOUND_ABS, F16_BOUND_REL, FinalFrames, FinalWriter
+from physgs_steps.final_frames import (F16_BOUND_ABS, F16_BOUND_REL, F16_MAX, FinalFrames, FinalWriter, FrameSink,
+                                       to_float16)
+from physgs_steps.physical import PhysicalFigures, det3
 from physgs_steps.render.deform import CarrierMap
 
 
@@ -192,3 +195,210 @@ def test_final_frames_block_reads_match_single_rows(tmp_path, monkeypatch):
                 np.testing.assert_array_equal(fk, ref_f[rows[k]].astype(np.float32) + np.eye(3, dtype=np.float32))
                 xk[:] = -1.0  # a caller's change does not reach the cached block
                 assert fr.x(k)[0, 0] == ref_x[rows[k]][0, 0]
+
+
+# ---------------------------------------------------------------- final_sim's per-frame work (#18)
+def test_to_float16_is_numpy_astype_bit_for_bit():
+    """Every finite float16 value, the midpoints between neighbours (ties to even) and the
+    float32 numbers next to both, signed, plus random float32 bit patterns below F16_MAX."""
+    h = np.arange(0, 0x7C00, dtype=np.uint16).view(np.float16).astype(np.float32)
+    nxt = np.append(h[1:], np.float32(65520.0))
+    mid = ((h.astype(np.float64) + nxt) / 2).astype(np.float32)   # exact: 12 significant bits
+    v = np.concatenate([h, mid] + [np.nextafter(a, t) for a in (h, mid) for t in (np.float32(0), np.float32(np.inf))])
+    rng = np.random.default_rng(3)
+    bits = rng.integers(0, 2 ** 32, 400_000, dtype=np.uint64).astype(np.uint32).view(np.float32)
+    v = np.concatenate([v, bits[np.isfinite(bits)]])
+    v = v[np.abs(v) < F16_MAX]
+    v = np.concatenate([v, -v, np.float32([-0.0])])
+    assert len(v) > 800_000
+    np.testing.assert_array_equal(to_float16(v).view(np.uint16), v.astype(np.float16).view(np.uint16))
+    blocks = v[:200_001].reshape(-1, 1)   # several conversion blocks, an odd length
+    np.testing.assert_array_equal(to_float16(blocks).view(np.uint16), blocks.astype(np.float16).view(np.uint16))
+
+
+class _ReferenceWriter(FinalWriter):
+    """final.h5 as FinalWriter wrote it before #18: a row appended per stored frame (two
+    resizes), the entry-wise float16 check, numpy's float16 conversion, h5py's write."""
+
+    def __init__(self, h5, particle_index, time, codec=None, to_source=None):
+        super().__init__(h5, particle_index, time, codec, to_source)
+        for name in ("x", "F_minus_I"):
+            del h5[name]
+        m = self.m
+        self.dx = h5.create_dataset("x", (0, m, 3), np.float32, maxshape=(None, m, 3), chunks=(1, m, 3), **(codec or {}))
+        self.dF = h5.create_dataset("F_minus_I", (0, m, 3, 3), np.float16, maxshape=(None, m, 3, 3),
+                                    chunks=(1, m, 3, 3), **(codec or {}))
+
+    def frame(self, k, x, F):
+        dev = np.asarray(F, np.float32) - np.eye(3, dtype=np.float32)
+        big = np.abs(dev) >= F16_MAX
+        if big.any():
+            raise SimulationError(f"frame {k}: {int(big.any(axis=(1, 2)).sum())} particles have |F - I| >= {F16_MAX:g} "
+                                  "(the simulation exploded); final.h5 stores F - I in float16")
+        r = self.rows
+        self.dx.resize(r + 1, axis=0)
+        self.dF.resize(r + 1, axis=0)
+        self.dx[r] = np.asarray(x, np.float32)
+        self.dF[r] = dev.astype(np.float16)
+        self.frame_row[k] = r
+        self.rows += 1
+        sub = np.asarray(x, np.float64)[:: self._stride]
+        sub = sub[np.isfinite(sub).all(axis=1)]
+        if self._to_source is not None and sub.shape[0]:
+            sub = np.asarray(self._to_source(sub), np.float64)
+        if sub.shape[0]:
+            b = np.percentile(sub, [1.0, 99.0], axis=0)
+            self.lo, self.hi = np.minimum(self.lo, b[0]), np.maximum(self.hi, b[1])
+
+
+def _frames(m, t, rng):
+    """Frames that reach every branch: F = I at frame 0 (all-zero F - I: float16 subnormal
+    path), NaN rows in x and F (the writer's and the figures' general paths), entries next to
+    +-F16_MAX and in the float16 subnormal range, particles outside the unit cube."""
+    x = rng.uniform(0.1, 0.9, (t, m, 3)).astype(np.float32)
+    F = (np.eye(3) + rng.normal(0.0, 0.3, (t, m, 3, 3)) * rng.uniform(0, 3, (t, m, 1, 1))).astype(np.float32)
+    F[0] = np.eye(3)
+    F[2, :5] = np.eye(3) + rng.normal(0, 1e-6, (5, 3, 3))
+    F[2, 5, 0, 1], F[2, 6, 1, 1] = 65503.0, -65500.0
+    x[5, 3] = np.nan
+    F[6, 7, 2, 2] = np.nan
+    x[7, :10, 2] = -0.2
+    return x, F
+
+
+def _write(cls, path, x, F, held, truncate=None, to_source=None, thread=None):
+    t, m = x.shape[:2]
+    with h5py.File(path, "w") as h:
+        w = cls(h, np.arange(m) * 3, np.arange(t) / 30.0, None, to_source)
+        fig = PhysicalFigures(t)
+        sink = FrameSink(w, fig, thread=bool(thread)) if thread is not None else None
+        try:
+            for k in range(t):
+                if sink is not None:
+                    sink.hold(k) if k in held else sink.frame(k, x[k], F[k])
+                elif k in held:
+                    w.hold(k)
+                else:
+                    w.frame(k, x[k], F[k])
+            if sink is not None:
+                sink.close()
+        finally:
+            if sink is not None:
+                sink.abort()
+        if truncate:
+            w.truncate(truncate)
+        w.finish({"stats": {"rows": w.rows}})
+        return w.rows
+
+
+@pytest.mark.parametrize("held, truncate, to_source", [((3, 4, 9), None, False), ((10, 11), 10, True)])
+def test_final_writer_bit_for_bit_as_before(tmp_path, held, truncate, to_source):
+    """The writer (preallocated rows, H5Dwrite_chunk, to_float16, one-sum checks), inline and
+    through the writer thread, writes the datasets and attributes of the writer it replaced."""
+    rng = np.random.default_rng(11)
+    x, F = _frames(5000, 12, rng)   # 5000 > MOTION_ROWS: the strided motion subset
+    to_src = (lambda p: p * 2.0 + np.array([0.1, -3.0, 7.0])) if to_source else None
+    ref = _write(_ReferenceWriter, tmp_path / "ref.h5", x, F, held, truncate, to_src)
+    for name, thread in (("inline", False), ("thread", True)):
+        rows = _write(FinalWriter, tmp_path / f"{name}.h5", x, F, held, truncate, to_src, thread)
+        assert rows == ref
+        with h5py.File(tmp_path / "ref.h5") as a, h5py.File(tmp_path / f"{name}.h5") as b:
+            assert sorted(a) == sorted(b) and dict(a.attrs) == dict(b.attrs)
+            for k in a:
+                assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype and a[k].chunks == b[k].chunks, k
+                assert a[k].maxshape == b[k].maxshape, k
+                assert a[k][()].tobytes() == b[k][()].tobytes(), k
+            assert np.isnan(b["x"][5 - sum(h < 5 for h in held), 3]).all()   # the NaN row is stored as before
+    with FinalFrames(tmp_path / "thread.h5") as fr:
+        assert fr.motion_box[0] == ("source" if to_source else "sim")
+
+
+def test_final_writer_allocates_only_written_rows(tmp_path):
+    """Rows are preallocated for every frame but chunks exist only where written: a clip held
+    at rest after 3 of 150 frames takes 3 rows of space, and finish() shrinks x to 3 rows."""
+    m, t = 20000, 150
+    rng = np.random.default_rng(2)
+    with h5py.File(tmp_path / "f.h5", "w") as h:
+        w = FinalWriter(h, np.arange(m), np.arange(t) / 30.0)
+        for k in range(t):
+            w.frame(k, rng.random((m, 3), np.float32), np.eye(3, dtype=np.float32) + rng.random((m, 3, 3), np.float32)) \
+                if k < 3 else w.hold(k)
+        w.finish({})
+    row = m * 3 * 4 + m * 9 * 2
+    size = (tmp_path / "f.h5").stat().st_size
+    assert 3 * row < size < 3 * row + 200_000, size
+    with FinalFrames(tmp_path / "f.h5") as fr:
+        assert fr.rows == 3 and fr.frame_row.tolist() == [0, 1] + [2] * (t - 2)
+
+
+def test_writer_thread_error_fails_cleanly(tmp_path):
+    """The float16 overflow raised in the writer thread comes back, the same exception with
+    its message, at the next hand-off or at close(); frames after it are not written."""
+    m, t = 100, 8
+    rng = np.random.default_rng(4)
+    x = rng.random((t, m, 3)).astype(np.float32)
+    F = np.broadcast_to(np.eye(3, dtype=np.float32), (t, m, 3, 3)).copy()
+    F[2, 7] *= 1e6
+    with h5py.File(tmp_path / "f.h5", "w") as h:
+        w = FinalWriter(h, np.arange(m), np.arange(t) / 30.0)
+        sink = FrameSink(w, PhysicalFigures(t), thread=True, depth=1)
+        try:
+            with pytest.raises(SimulationError, match=r"frame 2: 1 particles have \|F - I\| >= 65504.*float16"):
+                for k in range(t):
+                    sink.frame(k, x[k], F[k])
+                sink.close()
+        finally:
+            sink.abort()
+        assert w.rows == 2 and (w.frame_row[2:] == -1).all()
+        with pytest.raises(SimulationError, match="frame 2"):   # raised again, never swallowed
+            sink.close()
+    inline = FrameSink(FinalWriter(h5py.File(tmp_path / "g.h5", "w"), np.arange(m), np.arange(t) / 30.0),
+                       PhysicalFigures(t), thread=False)
+    inline.frame(0, x[0], F[0])
+    with pytest.raises(SimulationError, match="frame 2"):
+        inline.frame(2, x[2], F[2])
+    inline.writer.h5.close()
+
+
+def _result_bits(r):
+    import json
+
+    return json.dumps(r, sort_keys=True)
+
+
+def test_physical_figures_fast_path_as_general_path():
+    """Frames without NaN/inf take PhysicalFigures._add_finite: every figure bit for bit that
+    of the general path except the centre of mass (pairwise sum), which stays within the
+    stated bound 2 (M - 1) 2^-53 mean|x| + one rounding; det3 as the cofactor expression on
+    [M, 3, 3] views (the code before #18)."""
+    rng = np.random.default_rng(8)
+    m, t = 3000, 10
+    x, F = _frames(m, t, rng)
+    # positions spanning magnitudes and signs: sums that are not exact in float64
+    x[4] = (rng.uniform(-1, 1, (m, 3)) * 10.0 ** rng.uniform(-9, 0, (m, 1))).astype(np.float32)
+    eye = np.eye(3, dtype=np.float32)
+    for inputs in ("float32", "float64"):
+        fast, slow = PhysicalFigures(t, margin=0.05), PhysicalFigures(t, margin=0.05)
+        for k in range(t):
+            xk, Fk = (x[k], F[k]) if inputs == "float32" else (x[k].astype(np.float64), F[k].astype(np.float64))
+            if k == 8:
+                fast.repeat(k), slow.repeat(k)
+                continue
+            dev = (F[k] - eye) if np.isfinite(F[k]).all() and inputs == "float32" else None
+            fast.add(k, xk, Fk, f_minus_i=dev)
+            slow._add_general(k, xk, Fk)
+        bound = 2 * (m - 1) * 2.0 ** -53 * np.nanmean(np.abs(x.astype(np.float64)), axis=1) + 2.0 ** -52 * np.abs(slow.com)
+        bound[8] = bound[7]   # held: frame 7's centre
+        assert (np.abs(fast.com - slow.com) <= bound + 1e-300).all()
+        assert np.array_equal(np.isnan(fast.com), np.isnan(slow.com))
+        a, b = fast.result(np.arange(t) / 30.0), slow.result(np.arange(t) / 30.0)
+        ca, cb = a.pop("com_displacement"), b.pop("com_displacement")
+        assert _result_bits(a) == _result_bits(b), inputs
+        assert ca["value"] == pytest.approx(cb["value"], rel=1e-9, abs=1e-15)
+        assert fast.n_nonfinite == slow.n_nonfinite > 0 and fast.out_frac_max == slow.out_frac_max > 0
+    G = F[3].astype(np.float64)
+    expr = (G[:, 0, 0] * (G[:, 1, 1] * G[:, 2, 2] - G[:, 1, 2] * G[:, 2, 1])
+            - G[:, 0, 1] * (G[:, 1, 0] * G[:, 2, 2] - G[:, 1, 2] * G[:, 2, 0])
+            + G[:, 0, 2] * (G[:, 1, 0] * G[:, 2, 1] - G[:, 1, 1] * G[:, 2, 0]))
+    assert det3(F[3], np.float64).tobytes() == expr.tobytes() == det3(G).tobytes()
+    assert det3(np.zeros((0, 3, 3))).shape == (0,)

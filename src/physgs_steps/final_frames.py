@@ -67,6 +67,69 @@ def codec_options(name: str, level: int = 1) -> dict:
     raise ValueError(f"unknown codec {name!r}; known: {CODECS}")
 
 
+# float32 -> float16 bits, round to nearest even, done in blocks that stay in the CPU's cache
+# (numpy's astype converts one element at a time: 2.2-4 ms for 60k particles' F - I on the
+# 2-core CPU; this 0.6-1 ms; benchmarks/bench_final_h5.py --callback)
+_H_REBIAS = np.uint32(((15 - 127) << 23) + 0xFFF + (1 << 32))  # exponent 127 -> 15, plus the rounding offset
+_H_MIN_NORMAL = np.uint32(113 << 23)                            # 2^-14: float16's smallest normal number
+_H_HALF = np.float32(0.5)                                       # aligns a subnormal's 10 bits at the bottom
+_H_HALF_BITS = np.uint32(126 << 23)                             # its bits
+_F16_BLOCK = 1 << 16
+
+
+def to_float16(a: np.ndarray) -> np.ndarray:
+    """``a.astype(np.float16)``, bit for bit, for a float32 array whose entries are all finite
+    and below F16_MAX in magnitude (callers check; NaN, inf and overflow take numpy's path).
+
+    Normal results: rebias the exponent and round the 13 dropped bits to nearest, ties to even
+    (add 0xFFF plus the lowest kept bit, shift). Subnormal results (|a| < 2^-14): add 0.5 in
+    float32, whose rounding (to nearest even at 2^-24, float16's subnormal spacing) leaves the
+    float16 significand in the low bits. tests/test_carrier.py compares it with astype on every
+    float16 value, the midpoints between neighbours and their float32 neighbours."""
+    a = np.ascontiguousarray(a, np.float32)
+    u = a.reshape(-1).view(np.uint32)
+    n = len(u)
+    res = np.empty(n, np.uint16)
+    b = min(n, _F16_BLOCK)
+    mag, o, t = np.empty(b, np.uint32), np.empty(b, np.uint32), np.empty(b, np.uint32)
+    s, small = np.empty(b, np.float32), np.empty(b, bool)
+    for i in range(0, n, b):
+        j = min(n, i + b)
+        k = j - i
+        ui, mg, oo, tt, ss, sm = u[i:j], mag[:k], o[:k], t[:k], s[:k], small[:k]
+        np.bitwise_and(ui, np.uint32(0x7FFFFFFF), out=mg)
+        np.right_shift(mg, 13, out=oo)          # the lowest kept bit: ties go to even
+        oo &= np.uint32(1)
+        oo += mg
+        oo += _H_REBIAS
+        oo >>= 13
+        np.add(mg.view(np.float32), _H_HALF, out=ss)
+        sb = ss.view(np.uint32)
+        sb -= _H_HALF_BITS
+        np.less(mg, _H_MIN_NORMAL, out=sm)
+        np.copyto(oo, sb, where=sm)
+        np.right_shift(ui, 16, out=tt)
+        tt &= np.uint32(0x8000)
+        oo |= tt
+        res[i:j] = oo
+    return res.view(np.float16).reshape(a.shape)
+
+
+def f_minus_identity(F: np.ndarray, eye: np.ndarray | None = None) -> np.ndarray:
+    """F - I of [M, 3, 3] float32 as one contiguous subtraction of ``eye`` (:func:`tiled_identity`
+    of M; made here when not given): the broadcast ``F - np.eye(3)`` runs 3-element inner loops
+    and takes 3x as long. The same value for every entry (x - 0 is x, -0 included)."""
+    F = np.ascontiguousarray(F, np.float32)
+    if eye is None:
+        eye = tiled_identity(len(F))
+    return (F.reshape(-1) - eye).reshape(F.shape)
+
+
+def tiled_identity(m: int) -> np.ndarray:
+    """[9 M] float32: M flattened 3x3 identities."""
+    return np.tile(np.eye(3, dtype=np.float32).reshape(-1), int(m))
+
+
 class FinalWriter:
     """Writes final.h5 frame by frame into an open, empty h5py.File.
 
@@ -86,37 +149,68 @@ class FinalWriter:
         self.n_frames = int(len(time))
         self.rows = 0
         self.frame_row = np.full(self.n_frames, -1, np.int32)
-        m = self.m
+        m, n = self.m, self.n_frames
         h5.create_dataset("particle_index", data=np.asarray(particle_index, np.int64))
         h5.create_dataset("time", data=np.asarray(time, np.float64))
-        self.dx = h5.create_dataset("x", (0, m, 3), np.float32, maxshape=(None, m, 3), chunks=(1, m, 3), **(codec or {}))
-        self.dF = h5.create_dataset("F_minus_I", (0, m, 3, 3), np.float16, maxshape=(None, m, 3, 3),
+        # room for every frame, shrunk to the stored rows in finish(): a chunk is allocated when
+        # it is written, so rows never written (frames held at rest) take no space in the file
+        self.dx = h5.create_dataset("x", (n, m, 3), np.float32, maxshape=(None, m, 3), chunks=(1, m, 3), **(codec or {}))
+        self.dF = h5.create_dataset("F_minus_I", (n, m, 3, 3), np.float16, maxshape=(None, m, 3, 3),
                                     chunks=(1, m, 3, 3), **(codec or {}))
+        # without a filter a row's chunk is its bytes: written with H5Dwrite_chunk (no selection,
+        # no conversion); with a codec through h5py's ordinary path (HDF5 compresses)
+        self._direct = not codec
+        self._eye = tiled_identity(m)
         self.lo, self.hi = np.full(3, np.inf), np.full(3, -np.inf)
         self._stride = max(1, int(math.ceil(m / MOTION_ROWS)))
         self._to_source = to_source
 
-    def frame(self, k: int, x: np.ndarray, F: np.ndarray) -> None:
-        """Store frame k: x [M, 3], F [M, 3, 3] (sim frame, float32)."""
-        dev = np.asarray(F, np.float32) - np.eye(3, dtype=np.float32)
-        big = np.abs(dev) >= F16_MAX
-        if big.any():
-            raise SimulationError(f"frame {k}: {int(big.any(axis=(1, 2)).sum())} particles have |F - I| >= {F16_MAX:g} "
-                                  "(the simulation exploded); final.h5 stores F - I in float16")
+    def frame(self, k: int, x: np.ndarray, F: np.ndarray) -> np.ndarray | None:
+        """Store frame k: x [M, 3], F [M, 3, 3] (sim frame, float32).
+
+        Returns F - I as float32 [M, 3, 3] when every entry of F is finite (the
+        ``f_minus_i`` of :meth:`PhysicalFigures.add`, which then need not compute it), else None."""
+        x_in = x
+        try:   # whole rows, C order: the bytes of a chunk (h5py's write broadcast too)
+            x = np.ascontiguousarray(np.broadcast_to(np.asarray(x, np.float32), (self.m, 3)))
+            F = np.ascontiguousarray(np.broadcast_to(np.asarray(F, np.float32), (self.m, 3, 3)))
+        except ValueError:
+            raise ValueError(f"frame {k}: x {np.shape(x)} and F {np.shape(F)} do not fit ({self.m}, 3) and "
+                             f"({self.m}, 3, 3)") from None
+        dev = f_minus_identity(F, self._eye)
+        # one min and one max instead of |dev| >= F16_MAX per entry: both inside the float16
+        # range means every entry is finite and storable; otherwise (NaN, inf, huge) the exact
+        # entry-wise check below decides
+        fast = dev.size == 0 or bool(-F16_MAX < dev.min() and dev.max() < F16_MAX)
+        if fast:
+            dev16 = to_float16(dev)
+        else:
+            dev = F - np.eye(3, dtype=np.float32)   # the reference expression (NaN payloads as before)
+            big = np.abs(dev) >= F16_MAX
+            if big.any():
+                raise SimulationError(f"frame {k}: {int(big.any(axis=(1, 2)).sum())} particles have |F - I| >= {F16_MAX:g} "
+                                      "(the simulation exploded); final.h5 stores F - I in float16")
+            dev16 = dev.astype(np.float16)
         r = self.rows
-        self.dx.resize(r + 1, axis=0)
-        self.dF.resize(r + 1, axis=0)
-        self.dx[r] = np.asarray(x, np.float32)
-        self.dF[r] = dev.astype(np.float16)
+        if r >= self.n_frames:
+            raise ValueError(f"frame {k}: all {self.n_frames} rows are written")
+        if self._direct:
+            self.dx.id.write_direct_chunk((r, 0, 0), x)
+            self.dF.id.write_direct_chunk((r, 0, 0, 0), dev16)
+        else:
+            self.dx[r] = x
+            self.dF[r] = dev16
         self.frame_row[k] = r
         self.rows += 1
-        sub = np.asarray(x, np.float64)[:: self._stride]
-        sub = sub[np.isfinite(sub).all(axis=1)]
+        sub = np.asarray(x_in)[:: self._stride].astype(np.float64)
+        if not np.isfinite(sub.sum()):   # a finite sum: every entry is finite
+            sub = sub[np.isfinite(sub).all(axis=1)]
         if self._to_source is not None and sub.shape[0]:
             sub = np.asarray(self._to_source(sub), np.float64)
         if sub.shape[0]:
             b = np.percentile(sub, [1.0, 99.0], axis=0)
             self.lo, self.hi = np.minimum(self.lo, b[0]), np.maximum(self.hi, b[1])
+        return dev if fast else None
 
     def hold(self, k: int) -> None:
         """Frame k repeats the newest stored row (the state is held at rest)."""
@@ -141,6 +235,8 @@ class FinalWriter:
         if missing.size:
             raise SimulationError(f"final.h5: frames {missing[:10].tolist()} were never written")
         self.h5.create_dataset("frame_row", data=self.frame_row)
+        self.dx.resize(self.rows, axis=0)   # the rows never written (held frames, truncate) go
+        self.dF.resize(self.rows, axis=0)
         self.h5.attrs["format"] = FORMAT
         box = None
         if np.isfinite(self.lo).all():
@@ -151,6 +247,130 @@ class FinalWriter:
 
 
 READ_BLOCK_BYTES = 16 << 20  # FinalFrames reads rows in blocks of about this size
+
+
+WRITER_THREAD_ENV = "PHYSGS_FINAL_WRITER_THREAD"
+
+
+def writer_thread_default(arch: str) -> bool:
+    """Whether final_sim hands its frames to a writer thread: ``PHYSGS_FINAL_WRITER_THREAD``
+    (``1``/``0``; for A/B timings); unset or ``auto``: on CUDA only. On the CPU backend Taichi's
+    kernels run inside calls that keep the GIL and use every core: a thread cannot overlap
+    them (benchmarks/bench_final_h5.py --callback --final-sim, README "GPU")."""
+    import os
+
+    v = os.environ.get(WRITER_THREAD_ENV, "auto").strip().lower()
+    if v in ("", "auto"):
+        return arch == "cuda"
+    return v not in ("0", "false", "no", "off")
+
+
+class FrameSink:
+    """Passes final_sim's frames to a :class:`FinalWriter` and a ``PhysicalFigures``, in frame
+    order, either in the caller's thread (``thread=False``) or in one background thread, so that
+    the main thread launches the next frame's substeps while a frame is written and measured.
+
+    The queue holds at most ``depth`` frames (the caller waits when it is full: memory stays
+    bounded when writing is slower than simulating). The first exception raised in the thread
+    (e.g. the float16 overflow's SimulationError) is raised again, the same object, by the next
+    :meth:`frame`/:meth:`hold` or by :meth:`close`; frames queued after it are dropped. Call
+    :meth:`close` after the last frame and :meth:`abort` (idempotent) before the file closes on
+    any path.
+
+    Attributes:
+        busy_seconds: time spent writing and measuring (in whichever thread did it).
+        wait_seconds: time the caller waited for the thread (full queue, and :meth:`close`).
+    """
+
+    def __init__(self, writer: "FinalWriter", figures, thread: bool = True, depth: int = 2) -> None:
+        self.writer, self.figures, self.thread = writer, figures, bool(thread)
+        self.busy_seconds = 0.0
+        self.wait_seconds = 0.0
+        self._error: BaseException | None = None
+        self._stop = False
+        self._worker = None
+        if self.thread:
+            import queue
+            import threading
+
+            self._q = queue.Queue(maxsize=max(1, int(depth)))
+            self._worker = threading.Thread(target=self._run, name="final-writer", daemon=True)
+            self._worker.start()
+
+    def frame(self, k: int, x: np.ndarray, F: np.ndarray) -> None:
+        """Frame k's positions [M, 3] and F [M, 3, 3] (arrays the caller no longer changes)."""
+        self._submit(("frame", k, x, F))
+
+    def hold(self, k: int) -> None:
+        """Frame k repeats the newest stored frame (held at rest)."""
+        self._submit(("hold", k))
+
+    def close(self) -> None:
+        """Wait for the queued frames; raise the thread's exception if there was one."""
+        if self._worker is not None:
+            import time
+
+            t0 = time.perf_counter()
+            self._q.put(None)
+            self._worker.join()
+            self._worker = None
+            self.wait_seconds += time.perf_counter() - t0
+        self._raise()
+
+    def abort(self) -> None:
+        """Stop the thread without writing the frames still queued (an error path)."""
+        self._stop = True
+        if self._worker is not None:
+            self._q.put(None)
+            self._worker.join()
+            self._worker = None
+
+    # ------------------------------------------------------------------ internals
+    def _submit(self, item: tuple) -> None:
+        self._raise()
+        if self._worker is None:
+            if self.thread:
+                raise RuntimeError("FrameSink: a frame after close() or abort()")
+            self._do(item)
+            return
+        import queue
+        import time
+
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            t0 = time.perf_counter()
+            self._q.put(item)
+            self.wait_seconds += time.perf_counter() - t0
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise self._error
+
+    def _do(self, item: tuple) -> None:
+        import time
+
+        t0 = time.perf_counter()
+        if item[0] == "frame":
+            _, k, x, F = item
+            dev = self.writer.frame(k, x, F)
+            self.figures.add(k, x, F, f_minus_i=dev)
+        else:
+            self.writer.hold(item[1])
+            self.figures.repeat(item[1])
+        self.busy_seconds += time.perf_counter() - t0
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            if self._error is not None or self._stop:
+                continue   # drop what comes after a failure or an abort
+            try:
+                self._do(item)
+            except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+                self._error = e
 
 
 class FinalFrames:

@@ -158,7 +158,8 @@ def _source_fingerprint() -> str:
     return h.hexdigest()
 
 
-ENV_KEYS = ("PHYSGS_CACHE_DIR", "TORCH_EXTENSIONS_DIR", "CUDA_VISIBLE_DEVICES", "PYTHONPATH", "TI_ARCH")
+ENV_KEYS = ("PHYSGS_CACHE_DIR", "TORCH_EXTENSIONS_DIR", "CUDA_VISIBLE_DEVICES", "PYTHONPATH", "TI_ARCH",
+            "PHYSGS_FINAL_WRITER_THREAD", "PHYSGS_GIL_FREE_WAIT")  # the last two: final_sim's A/B runs get their own worker
 
 
 def worker_key() -> str:
