@@ -15,8 +15,9 @@ Per frame it prints the callback ms (the main thread's time handing the frame ov
 for a full queue and, spread over the frames, the final drain: what ``stats.write_seconds``
 counts), the writer's busy ms (the work itself, wherever it ran) and the wall ms (substep
 stand-in + callback: the overlap shows as wall < substep + busy). ``--final-sim N``: then the
-final_sim stage end to end on a tiny scene of N stored particles (two blocks, 30 frames on
-``--backend``), inline and threaded, after one run that compiles the kernels.
+final_sim stage end to end on a tiny scene of N stored particles (two blocks, ``--sim-frames``
+frames on ``--backend``): inline, threaded and (CUDA) threaded without the GIL-free device
+wait, ``--rounds`` alternating rounds in one process after a run that compiles the kernels.
 
 Reads the frames of a final.h5 (format physgs-final/2, written by final_sim) and writes them
 again in each layout, one frame per chunk as the renderer reads them:
@@ -139,7 +140,7 @@ def callback_bench(m: int, frames: int, substep_ms: float, kind: str, thread: bo
             "substep": sub / frames * 1e3, "wall": wall / frames * 1e3}
 
 
-def final_sim_bench(n: int, backend: str) -> None:
+def final_sim_bench(n: int, backend: str, frames: int = 30, rounds: int = 2) -> None:
     """final_sim end to end on two blocks of n/2 stored particles each, inline and threaded."""
     import copy
     import json
@@ -174,23 +175,25 @@ def final_sim_bench(n: int, backend: str) -> None:
             {**inst, "label": 1, "name": "can", "material": "jelly", "E": 2.0e5, "density": 1200.0}],
             "backend": "prior", "prompt": "bench", "history": []})
         sim = copy.deepcopy(section_defaults("sim"))
-        sim.update({"n_grid": 32, "n_frames": 30, "backend": backend})
+        sim.update({"n_grid": 32, "n_frames": frames, "backend": backend})
         cfg = {"sim": sim, "scene": {"dynamics": {"ground": {"height": 0.1}}}, "device": backend}
         inputs = {"particles": str(d / "particles.h5"), "params": str(d / "params.json")}
-        print(f"\nfinal_sim end to end: {int((~fl).sum())} stored of {len(x)} particles, 30 frames, "
+        print(f"\nfinal_sim end to end: {int((~fl).sum())} stored of {len(x)} particles, {frames} frames, "
               f"grid 32^3, backend {backend}")
-        print(f"{'run':<16} {'stage s':>8} {'substeps s':>10} {'write s':>8} {'writer busy s':>13}")
-        runs = [("warm-up", "1"), ("inline", "0"), ("thread", "1"), ("inline", "0"), ("thread", "1")]
-        for name, env in runs:
-            os.environ["PHYSGS_FINAL_WRITER_THREAD"] = env
-            out = d / f"final_{name}.h5"
+        print(f"{'run':<26} {'stage s':>8} {'substeps s':>10} {'write s':>8} {'writer busy s':>13}")
+        # thread without the GIL-free device wait (PHYSGS_GIL_FREE_WAIT=0) only differs on CUDA
+        modes = [("inline", "0", "1"), ("thread", "1", "1")] + ([("thread, no GIL-free wait", "1", "0")]
+                                                                if backend == "cuda" else [])
+        for name, thread, gil_free in [("warm-up", "0", "1")] + modes * rounds:
+            os.environ["PHYSGS_FINAL_WRITER_THREAD"], os.environ["PHYSGS_GIL_FREE_WAIT"] = thread, gil_free
+            out = d / "final.h5"
             t0 = time.perf_counter()
             simulate.run_final(inputs, {"frames": str(out)}, cfg, log)
             wall = time.perf_counter() - t0
             with h5py.File(out) as f:
                 st = json.loads(f.attrs["stats"])
-            print(f"{name:<16} {wall:8.2f} {st['simulate_seconds']:10.2f} {st['write_seconds']:8.3f} "
-                  f"{st['writer_busy_seconds']:13.3f}")
+            print(f"{name:<26} {wall:8.2f} {st['simulate_seconds']:10.2f} {st['write_seconds']:8.3f} "
+                  f"{st.get('writer_busy_seconds', float('nan')):13.3f}")
 
 
 def main() -> None:
@@ -205,6 +208,8 @@ def main() -> None:
     ap.add_argument("--kinds", nargs="+", default=["python", "gil-wait", "sleep"])
     ap.add_argument("--final-sim", type=int, default=0, metavar="N", help="then final_sim end to end, N stored particles")
     ap.add_argument("--backend", default="cpu")
+    ap.add_argument("--sim-frames", type=int, default=30, help="frames of the --final-sim runs")
+    ap.add_argument("--rounds", type=int, default=2, help="alternating rounds of the --final-sim modes")
     args = ap.parse_args()
     if args.callback:
         print(f"per frame, ms ({args.frames} frames; best of --repeat {args.repeat} by wall)")
@@ -217,7 +222,7 @@ def main() -> None:
                     print(f"{m:9d} {kind:<9} {'thread' if thread else 'inline':<7} {r['callback']:9.2f} "
                           f"{r['busy']:7.2f} {r['substep']:8.2f} {r['wall']:7.2f}")
         if args.final_sim:
-            final_sim_bench(args.final_sim, args.backend)
+            final_sim_bench(args.final_sim, args.backend, args.sim_frames, args.rounds)
         return
     if not args.final_h5:
         ap.error("give a final.h5 (or --callback)")
