@@ -266,10 +266,10 @@ def _frames(m, t, rng):
     return x, F
 
 
-def _write(cls, path, x, F, held, truncate=None, to_source=None, thread=None):
+def _write(cls, path, x, F, held, truncate=None, to_source=None, thread=None, codec=None):
     t, m = x.shape[:2]
     with h5py.File(path, "w") as h:
-        w = cls(h, np.arange(m) * 3, np.arange(t) / 30.0, None, to_source)
+        w = cls(h, np.arange(m) * 3, np.arange(t) / 30.0, codec, to_source)
         fig = PhysicalFigures(t)
         sink = FrameSink(w, fig, thread=bool(thread)) if thread is not None else None
         try:
@@ -291,22 +291,27 @@ def _write(cls, path, x, F, held, truncate=None, to_source=None, thread=None):
         return w.rows
 
 
-@pytest.mark.parametrize("held, truncate, to_source", [((3, 4, 9), None, False), ((10, 11), 10, True)])
-def test_final_writer_bit_for_bit_as_before(tmp_path, held, truncate, to_source):
-    """The writer (preallocated rows, H5Dwrite_chunk, to_float16, one-sum checks), inline and
-    through the writer thread, writes the datasets and attributes of the writer it replaced."""
+@pytest.mark.parametrize("held, truncate, to_source, codec", [((3, 4, 9), None, False, "none"),
+                                                              ((10, 11), 10, True, "none"), ((1,), None, False, "gzip")])
+def test_final_writer_bit_for_bit_as_before(tmp_path, held, truncate, to_source, codec):
+    """The writer (preallocated rows, H5Dwrite_chunk or with a codec h5py's write, to_float16,
+    one-sum checks), inline and through the writer thread, writes the datasets and attributes
+    of the writer it replaced."""
+    from physgs_steps.final_frames import codec_options
+
     rng = np.random.default_rng(11)
     x, F = _frames(5000, 12, rng)   # 5000 > MOTION_ROWS: the strided motion subset
     to_src = (lambda p: p * 2.0 + np.array([0.1, -3.0, 7.0])) if to_source else None
-    ref = _write(_ReferenceWriter, tmp_path / "ref.h5", x, F, held, truncate, to_src)
+    codec = codec_options(codec)
+    ref = _write(_ReferenceWriter, tmp_path / "ref.h5", x, F, held, truncate, to_src, codec=codec)
     for name, thread in (("inline", False), ("thread", True)):
-        rows = _write(FinalWriter, tmp_path / f"{name}.h5", x, F, held, truncate, to_src, thread)
+        rows = _write(FinalWriter, tmp_path / f"{name}.h5", x, F, held, truncate, to_src, thread, codec)
         assert rows == ref
         with h5py.File(tmp_path / "ref.h5") as a, h5py.File(tmp_path / f"{name}.h5") as b:
             assert sorted(a) == sorted(b) and dict(a.attrs) == dict(b.attrs)
             for k in a:
                 assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype and a[k].chunks == b[k].chunks, k
-                assert a[k].maxshape == b[k].maxshape, k
+                assert a[k].maxshape == b[k].maxshape and a[k].compression == b[k].compression, k
                 assert a[k][()].tobytes() == b[k][()].tobytes(), k
             assert np.isnan(b["x"][5 - sum(h < 5 for h in held), 3]).all()   # the NaN row is stored as before
     with FinalFrames(tmp_path / "thread.h5") as fr:
