@@ -9,8 +9,8 @@ final_sim's per-frame host work (writer + physical figures), inline against the 
 particle count, once inline (``PHYSGS_FINAL_WRITER_THREAD=0``) and once with the writer thread,
 with the main thread between frames doing ``--substep-ms`` of stand-in substep work of three
 kinds: ``python`` (a Python loop: Taichi's launch overhead), ``gil-wait`` (a C call that waits
-holding the GIL: Taichi's device synchronisation does), ``sleep`` (a wait that releases the GIL: final_sim's wait for the GPU with
-``runner.gil_free_device_wait``).
+holding the GIL, as Taichi's device synchronisation does), ``sleep`` (a wait that releases the
+GIL: final_sim's wait for the GPU through ``runner.gil_free_device_wait``).
 Per frame it prints the callback ms (the main thread's time handing the frame over, waiting
 for a full queue and, spread over the frames, the final drain: what ``stats.write_seconds``
 counts), the writer's busy ms (the work itself, wherever it ran) and the wall ms (substep
