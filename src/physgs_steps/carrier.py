@@ -167,7 +167,10 @@ def build_carrier(gauss_x: np.ndarray, gauss_label: np.ndarray, part_x: np.ndarr
         k = min(k_max, mine.size)
         d, j = cKDTree(part_x[mine]).query(gauss_x[g], k=k, workers=-1)
         d, j = d.reshape(len(g), k), j.reshape(len(g), k)
-        w = np.exp(-0.5 * (d / spacing) ** 2)  # [G, k]; the nearest particle lies within ~s, so w > 0
+        w = np.divide(d, spacing, out=d)  # w = exp(-0.5 (d / s)^2) [G, k], in place (N x K temporaries cost
+        np.square(w, out=w)                #  ~0.1 s at 10^6 gaussians); the nearest particle lies within ~s,
+        w *= -0.5                          #  so w > 0
+        np.exp(w, out=w)
         w /= w.sum(axis=1, keepdims=True)
         near[g, :k] = mine[j]
         weight[g, :k] = w
@@ -175,9 +178,9 @@ def build_carrier(gauss_x: np.ndarray, gauss_label: np.ndarray, part_x: np.ndarr
     is_driver = np.zeros(p, bool)
     is_driver[near[used]] = True
     drivers = np.flatnonzero(is_driver)  # np.unique(near[used]), without sorting N x K rows
-    col = np.full(p, -1, np.int64)
+    col = np.full(p + 1, -1, np.int32)  # final.h5 column of each particle row; col[-1] = -1 for unused slots
     col[drivers] = np.arange(drivers.size)
-    index = np.where(used, col[np.maximum(near, 0)], -1).astype(np.int32)
+    index = col[near]
     return Carrier(index, weight, drivers, ~used[:, 0], mode, float(spacing), p)
 
 
