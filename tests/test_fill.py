@@ -254,7 +254,7 @@ class SphereGT:
         return {"between": lambda p: np.all((p > [0.45, 0.45, 0.45]) & (p < [0.55, 0.55, 0.55]), axis=1)}
 
 
-def test_nearest_distance_is_scipys_default_tree_bitwise():
+def test_nearest_distance_is_scipys_default_tree_bitwise(monkeypatch):
     """MCIS distances from the tree shape fill uses are the default cKDTree's, bit for bit, for
     points inside a surface cloud (where the shapes differ most in speed) and outside it."""
     from scipy.spatial import cKDTree
@@ -266,6 +266,8 @@ def test_nearest_distance_is_scipys_default_tree_bitwise():
     d = F.nearest_distance(surf, q)
     assert d.tobytes() == cKDTree(surf).query(q, k=1)[0].tobytes()
     assert (d[-50:] == 0).all()
+    monkeypatch.setenv(F.TREE_ENV, "scipy")  # the A/B knob: scipy's default tree, the same numbers
+    assert F.nearest_distance(surf, q).tobytes() == d.tobytes()
 
 
 def test_recall_union_of_gaussians_and_filled_equals_covering_by_all():
