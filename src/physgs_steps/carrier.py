@@ -71,7 +71,7 @@ def representatives(points: np.ndarray, cell: float) -> np.ndarray:
     dims = keys.max(axis=0) + 1
     flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]  # [C]
     n_cells = int(np.prod(dims.astype(np.float64)))
-    if n_cells > max(4 * c, 1 << 20):  # sparse in a large box: number the occupied sub-cells
+    if n_cells > max(4 * c, 4096):  # sparse in a large box: number the occupied sub-cells instead
         _, flat = np.unique(flat, return_inverse=True)
         flat = flat.reshape(-1)
         n_cells = int(flat.max()) + 1
