@@ -38,6 +38,35 @@ def test_representatives_one_per_subcell_nearest_to_its_mean():
     assert particle_spacing(1 / 32, 8) == pytest.approx(1 / 64)
 
 
+def _representatives_by_sorting(points, cell):
+    """The definition of ``representatives`` written plainly (np.unique + lexsort): per sub-cell
+    the row nearest to the mean of its rows, the first row among equally near ones."""
+    keys = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    mean = np.stack([np.bincount(inv, weights=points[:, a]) for a in range(3)], axis=1) / counts[:, None]
+    d2 = ((points - mean[inv]) ** 2).sum(axis=1)
+    order = np.lexsort((d2, inv))
+    first = np.r_[True, inv[order][1:] != inv[order][:-1]]
+    return np.sort(order[first])
+
+
+def test_representatives_equal_the_sorting_definition_with_ties_and_sparse_boxes():
+    """The bincount / minimum.at form picks exactly the rows of the sorting form: on a dense
+    cloud, with duplicated points (equal distances: the first row wins), and on a sparse cloud
+    in a huge box (the path that numbers the occupied sub-cells)."""
+    rng = np.random.default_rng(3)
+    pts = _shell(4000, rng)
+    dup = np.concatenate([pts, pts[::7], pts[::5]])[rng.permutation(4000 + 572 + 800)]
+    grid = np.round(rng.uniform(0.0, 1.0, (3000, 3)) * 40) / 40  # lattice points: many exact ties
+    sparse = np.concatenate([rng.uniform(0.0, 1.0, (500, 3)), rng.uniform(0.0, 1.0, (500, 3)) + 1e4])
+    for p, cell in [(pts, 0.02), (dup, 0.02), (grid, 0.05), (sparse, 0.01), (pts[:1], 0.1)]:
+        got = representatives(p, cell)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, _representatives_by_sorting(p, cell))
+    assert representatives(np.zeros((0, 3)), 0.1).shape == (0,)
+
+
 def _two_instance_carrier(rng, k=8):
     """Two shells (labels 0, 1) plus a static gaussian (label -1); particles: representatives + interior."""
     g0, g1 = _shell(3000, rng, (0.35, 0.5, 0.5), 0.1), _shell(3000, rng, (0.65, 0.5, 0.5), 0.1)
@@ -61,6 +90,7 @@ def test_budget_carrier_weights_instances_and_static(tmp_path):
     drv = c.drivers[c.index[:6000]]  # particle rows of every gaussian's drivers
     assert (plab[drv] == glab[:6000, None]).all()  # a gaussian never follows another object
     assert c.drivers.size < px.shape[0] and np.all(np.diff(c.drivers) > 0)
+    np.testing.assert_array_equal(c.drivers, np.unique(drv))  # exactly the particles that drive a gaussian
     # the heaviest driver of a gaussian that is itself a representative is that particle
     r = int(prow[0])
     assert c.drivers[c.index[r, np.argmax(c.weight[r])]] == 0

@@ -254,6 +254,42 @@ class SphereGT:
         return {"between": lambda p: np.all((p > [0.45, 0.45, 0.45]) & (p < [0.55, 0.55, 0.55]), axis=1)}
 
 
+def test_nearest_distance_is_scipys_default_tree_bitwise(monkeypatch):
+    """MCIS distances from the tree shape fill uses are the default cKDTree's, bit for bit, for
+    points inside a surface cloud (where the shapes differ most in speed) and outside it."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(5)
+    surf = np.concatenate([sphere_shell(20000, [0.5, 0.5, 0.5], 0.2, rng),
+                           cup_shell(5000, [0.2, 0.2, 0.1], 0.08, 0.06, 0.1, 0.02, rng)])
+    q = np.concatenate([rng.uniform(0.3, 0.7, (3000, 3)), rng.uniform(0.0, 1.0, (1000, 3)), surf[:50]])
+    d = F.nearest_distance(surf, q)
+    assert d.tobytes() == cKDTree(surf).query(q, k=1)[0].tobytes()
+    assert (d[-50:] == 0).all()
+    monkeypatch.setenv(F.TREE_ENV, "scipy")  # the A/B knob: scipy's default tree, the same numbers
+    assert F.nearest_distance(surf, q).tobytes() == d.tobytes()
+
+
+def test_recall_union_of_gaussians_and_filled_equals_covering_by_all():
+    """_recall_records asks the filled particles only about samples the gaussians leave
+    uncovered; the counts equal covering by all particles of the instance at once."""
+    rng = np.random.default_rng(11)
+    gauss = np.concatenate([sphere_shell(3000, [0.3, 0.5, 0.5], 0.1, rng), sphere_shell(3000, [0.7, 0.5, 0.5], 0.1, rng)])
+    filled = np.concatenate([[0.3, 0.5, 0.5] + rng.uniform(-0.07, 0.07, (500, 3)),
+                             [0.7, 0.5, 0.5] + rng.uniform(-0.07, 0.07, (500, 3))])
+    x = np.concatenate([gauss, filled])
+    lab = np.r_[np.zeros(3000), np.ones(3000), np.zeros(500), np.ones(500)].astype(np.int32)
+    samples = FR.eval_grid(np.array([0.15, 0.35, 0.35]), np.array([0.85, 0.65, 0.65]), 0.01)
+    sgt = np.where(np.linalg.norm(samples - [0.3, 0.5, 0.5], axis=1) < 0.1, 0,
+                   np.where(np.linalg.norm(samples - [0.7, 0.5, 0.5], axis=1) < 0.1, 1, -1))
+    recs = FR._recall_records(x, lab, 6000, [0, 1], samples, sgt, ["a", "b"], 0.005)
+    for j, r in enumerate(recs):
+        t = samples[sgt == j]
+        assert r["covered"] == int(FR._covered(t, x[lab == j], 0.005).sum())
+        assert r["covered_gaussians_only"] == int(FR._covered(t, x[:6000][lab[:6000] == j], 0.005).sum())
+        assert r["covered_gaussians_only"] < r["covered"] < r["volume_samples"]
+
+
 def test_evaluate_precision_recall_leakage():
     rng = np.random.default_rng(7)
     gt = SphereGT([[0.3, 0.5, 0.5], [0.7, 0.5, 0.5]], [0.1, 0.1])

@@ -63,6 +63,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
 import tracemalloc
 from dataclasses import dataclass, field
@@ -77,6 +78,7 @@ from .runtime import Timer, atomic_path, write_json
 MCIS_EPS = 1e-6
 DIRECTIONS = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1), "+z": (2, 1), "-z": (2, -1)}
 CHUNK_ELEMS = 1 << 22  # candidate x facet elements per ray-casting chunk
+TREE_ENV = "PHYSGS_FILL_TREE"  # "scipy": MCIS distances from scipy's default k-d tree (nearest_distance)
 
 
 # ---------------------------------------------------------------------------- config
@@ -191,6 +193,25 @@ def shell_volume(points: np.ndarray, cell: float) -> float:
         return 0.0
     keys = np.floor(points / cell).astype(np.int64)
     return float(np.unique(keys, axis=0).shape[0]) * cell ** 3
+
+
+def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """[M] distance from each of queries [M, 3] to the nearest of points [C, 3] (C > 0).
+
+    The same numbers as ``cKDTree(points).query(queries, k=1)[0]``: a k-d tree's shape
+    decides which points it compares, not how it computes a distance, and the nearest
+    distance is the smallest of them. The tree is built with sliding-midpoint splits
+    (``balanced_tree=False``) and without shrinking each node to its points
+    (``compact_nodes=False``): MCIS asks it for points *inside* a cloud that lies on a
+    surface, and that shape answers such queries 3-5x faster than scipy's default (300k
+    bear gaussians, 14k occupied candidates: 0.6-1.3 s instead of 3.4-5 s of query
+    threads on 2 cores), and builds faster. The environment variable PHYSGS_FILL_TREE=scipy
+    takes scipy's default tree instead (for timing both in one process).
+    """
+    if os.environ.get(TREE_ENV) == "scipy":
+        return cKDTree(points).query(queries, k=1, workers=-1)[0]
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
+    return tree.query(queries, k=1, workers=-1)[0]
 
 
 def random_directions(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -455,7 +476,8 @@ def occupy_instance(inst: InstanceFill, pts: np.ndarray, gauss: dict, fcfg: dict
     Args:
         inst: the record to fill in.
         pts: [C, 3] the instance's gaussian means.
-        gauss: the instance's ``log_scales`` [C, 3], ``quats`` [C, 4], ``opacities`` [C].
+        gauss: the instance's ``log_scales`` [C, 3], ``quats`` [C, 4], ``opacities`` [C] (read by the
+            surface variant only; occupy_instances passes {} to the hull)
         voxel: voxel side of the surface variant.
     """
     lo, hi = pts.min(axis=0), pts.max(axis=0)
@@ -551,7 +573,7 @@ def select_instance(inst: InstanceFill, pts: np.ndarray, fcfg: dict, rng: np.ran
         return np.zeros((0, 3))
     p = None
     if fcfg["mcis"]:
-        d = inst.inside_dist if inst.inside_dist is not None else cKDTree(pts).query(q_in, k=1, workers=-1)[0]
+        d = inst.inside_dist if inst.inside_dist is not None else nearest_distance(pts, q_in)
         p = mcis_probabilities(d, fcfg["sigma"])
     idx = draw(n, q_in.shape[0], p, bool(fcfg["mcis_replace"]), rng)
     inst.duplicates = int(idx.size - np.unique(idx).size)
@@ -610,7 +632,8 @@ def occupy_instances(means: np.ndarray, members: list, insts: list[InstanceFill]
             inst.status, inst.reason = bad
         else:
             voxel = auto_voxel_size(pts, fcfg) if fcfg["occupancy"] == "surface" else None
-            occupy_instance(inst, pts, {key: v[members[i]] for key, v in gauss.items()}, fcfg, rng, voxel)
+            own = {key: v[members[i]] for key, v in gauss.items()} if voxel is not None else {}  # surface only
+            occupy_instance(inst, pts, own, fcfg, rng, voxel)
         if inst.status != "filled":
             log.warning("instance %d (%d gaussians): %s", i, inst.n_gaussians, inst.reason)
             if inst.status in ("flat", "too_small", "degenerate"):

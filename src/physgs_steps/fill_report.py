@@ -90,8 +90,12 @@ def _recall_records(x_src, p_label, n_gaussians, mapping, samples, sample_gt, na
     for j, name in enumerate(names):
         labs = [lab for lab in range(len(mapping)) if mapping[lab] == j]
         target = samples[sample_gt == j]
-        cov = _covered(target, x_src[np.isin(p_label, labs)], radius)
         cov_g = _covered(target, x_src[:n_gaussians][np.isin(p_label[:n_gaussians], labs)], radius)
+        # all particles are these gaussians and the filled particles of the same labels: a sample is
+        # covered by them iff by one of the two sets, so only the samples left uncovered by the
+        # gaussians are asked of the filled particles (one tree of the N gaussians, not two)
+        cov = cov_g.copy()
+        cov[~cov_g] = _covered(target[~cov_g], x_src[n_gaussians:][np.isin(p_label[n_gaussians:], labs)], radius)
         out.append({"gt_instance": j, "name": name, "labels": labs, "volume_samples": int(target.shape[0]),
                     "covered": int(cov.sum()), "covered_gaussians_only": int(cov_g.sum()),
                     "recall": _ratio(int(cov.sum()), target.shape[0], "no ground-truth volume sample"),
