@@ -3,6 +3,7 @@ launches (offloaded tasks) and device time, and what batching the substeps into 
 launches (``MPMSolver.substeps``) leaves of it.
 
     python benchmarks/bench_substep_launch.py [--run-dir DIR --scene bear] [--substeps N] [--profile]
+        [--reps 1 4 8] [--rounds 3]
 
 With ``--run-dir`` the solver is the scene's final simulation as a pipeline run left it (its
 particles.h5 and BGDO's last params.json, as benchmarks/bench_scene_substep.py); without it a
@@ -15,15 +16,25 @@ substeps it prints, per substep (milliseconds unless marked):
   (what the host needs per substep; above the device time the GPU waits: launch-bound);
 * ``python launch context``: building the substep's launch context in Python (Launcher's
   per-launch work: ~40 ``set_arg`` calls), without launching;
-* ``batched`` (a tree with ``MPMSolver.substeps``): N substeps in calls of 60 (a frame), one
-  sync; and its host time per substep over one 32-launch graph;
+* ``batched R=...`` (a tree with ``MPMSolver.substeps``), per number of substeps a launch R
+  (``--reps``, PHYSGS_TI_REPS; default the solver's for the arch), alternating the R values over
+  ``--rounds`` rounds, medians: ``wall``, N substeps in calls of 60 (a frame), one sync; ``host``,
+  the host time per substep of one call of 64 substeps (min over 20 calls; 64 substeps are 384
+  offloaded tasks whatever R, too few to fill CUDA's launch queue); ``first call``: the first
+  call with that R, one launch (its kernel's compilation, or its load from Taichi's offline
+  cache; R = 1: already loaded); and ``R=... vs single``: 300 substeps from one state, the largest difference in x
+  from 300 calls of ``substep``;
 * ``frames``: frames of 60 substeps, each followed by ``solver.stats()`` (a host sync and a
   read-back, as run_frames does), with the batched substeps where the tree has them;
 * ``per frame``: ``stats()`` and ``save_backup()`` (forward_sim's every frame) alone;
 * synthetic kernels through backend.Launcher: per-call time of a kernel with one 1-element loop
   and 1 or 38 ndarray arguments, and with 6 or 9 such loops (offloaded tasks);
 * with ``--profile`` (Taichi's kernel profiler; it synchronises after every task): the device
-  time of each offloaded task a substep and their count, and the same for a ``stats()`` call.
+  time of each offloaded task a substep and their count, the same for batched substeps per R,
+  and for a ``stats()`` call.
+
+On the GPU: ``python benchmarks/bench_substep_launch.py --reps 1 2 4 8`` (add ``--run-dir
+results/bear --scene bear`` for the pipeline's bear).
 
 Both the batched and single substeps run the same compiled kernel; on CUDA their results differ
 only by the order of float atomics, which the ``batched vs single`` line bounds.
@@ -40,6 +51,8 @@ ap.add_argument("--scene", default="bear")
 ap.add_argument("--substeps", type=int, default=3000)
 ap.add_argument("--arch", default="cuda")
 ap.add_argument("--profile", action="store_true")
+ap.add_argument("--reps", type=int, nargs="+", help="substeps a launch to compare (PHYSGS_TI_REPS values)")
+ap.add_argument("--rounds", type=int, default=3, help="rounds over the --reps values (alternating)")
 a = ap.parse_args()
 if a.profile:
     os.environ["PHYSGS_TI_PROFILER"] = "1"
@@ -49,9 +62,11 @@ import taichi as ti  # noqa: E402
 
 from physgs_steps.mpm import Dynamics, Material, MPMSolver  # noqa: E402
 from physgs_steps.mpm import backend as B  # noqa: E402
+from physgs_steps.mpm import solver as S  # noqa: E402
 
 DT = 2e-4  # the time step does not change the cost
 FRAME = 60  # substeps a frame (the default bear: 9,238 substeps over 3 x 149 frames)
+BURST = 64  # substeps of a host-time call: a multiple of 1, 2, 4, 8, 16
 
 
 def solver() -> MPMSolver:
@@ -77,12 +92,27 @@ def ms(seconds: float, n: int) -> str:
     return f"{1e3 * seconds / n:.4f}"
 
 
+def set_reps(reps: int | None) -> None:
+    """PHYSGS_TI_REPS for the next substeps() calls (None: as the caller's environment had it)."""
+    if reps is None:
+        os.environ.pop("PHYSGS_TI_REPS", None)
+        if ENV_REPS is not None:
+            os.environ["PHYSGS_TI_REPS"] = ENV_REPS
+    else:
+        os.environ["PHYSGS_TI_REPS"] = str(reps)
+
+
+ENV_REPS = os.environ.get("PHYSGS_TI_REPS")
 sol = solver()
 batched = hasattr(sol, "substeps")
+with_reps = hasattr(S, "reps_per_launch")
+REPS = (a.reps or [S.reps_per_launch(sol.arch)]) if with_reps else [1]
 for _ in range(300):
     sol.substep(DT)
 if batched:
-    sol.substeps(300, DT)  # builds the graphs
+    set_reps(1)
+    sol.substeps(300, DT)  # builds the one-substep graphs
+    set_reps(None)
 sol.stats()  # compiled (or loaded) before any timing: a first call's compilation would count
 sol.save_backup()
 ti.sync()
@@ -95,35 +125,34 @@ if a.profile:
 
     from taichi.profiler.kernel_profiler import get_default_kernel_profiler
 
-    ti.profiler.clear_kernel_profiler_info()
-    n = 200
-    for _ in range(n):
-        sol.substep(DT)
-    ti.sync()
     prof = get_default_kernel_profiler()
-    prof._update_records()
-    per, count = defaultdict(float), defaultdict(int)
-    for rec in prof._traced_records:
-        per[rec.name] += rec.kernel_time
-        count[rec.name] += 1
-    tasks = sum(count.values()) / n
-    total = sum(per.values()) / n
-    print(f"profile: {tasks:.1f} offloaded tasks (launches) a substep, device time {total:.4f} ms a substep")
-    for name, v in sorted(per.items(), key=lambda kv: -kv[1]):
-        print(f"  {v / n:8.4f} ms  x{count[name] / n:.0f}  {name}")
-    ti.profiler.clear_kernel_profiler_info()
-    prof._traced_records.clear()
-    for _ in range(20):
-        sol.stats()
-    ti.sync()
-    prof._update_records()
-    per, count = defaultdict(float), defaultdict(int)
-    for rec in prof._traced_records:
-        per[rec.name] += rec.kernel_time
-        count[rec.name] += 1
-    print(f"profile of stats(): {sum(count.values()) / 20:.1f} tasks, device time {sum(per.values()) / 20:.4f} ms a call")
-    for name, v in sorted(per.items(), key=lambda kv: -kv[1]):
-        print(f"  {v / 20:8.4f} ms  x{count[name] / 20:.0f}  {name}")
+
+    def profile(run, n: int, title: str) -> None:
+        """``run()`` under the profiler: offloaded tasks and device time per ``n``."""
+        ti.sync()
+        ti.profiler.clear_kernel_profiler_info()
+        prof._traced_records.clear()
+        run()
+        ti.sync()
+        prof._update_records()
+        per, count = defaultdict(float), defaultdict(int)
+        for rec in prof._traced_records:
+            per[rec.name] += rec.kernel_time
+            count[rec.name] += 1
+        print(f"profile of {title}: {sum(count.values()) / n:.1f} offloaded tasks (launches) a {title.split()[0]}, "
+              f"device time {sum(per.values()) / n:.4f} ms a {title.split()[0]}")
+        for name, v in sorted(per.items(), key=lambda kv: -kv[1]):
+            print(f"  {v / n:8.4f} ms  x{count[name] / n:.2f}  {name}")
+
+    n = 200
+    profile(lambda: [sol.substep(DT) for _ in range(n)], n, "substep (one a launch, substep())")
+    if batched:
+        for R in REPS:
+            set_reps(R)
+            sol.substeps(n, DT)  # compiled or loaded before the profile
+            profile(lambda: sol.substeps(n, DT), n, f"substep (substeps() with R={R})")
+        set_reps(None)
+    profile(lambda: [sol.stats() for _ in range(20)], 20, "call of stats()")
     sys.exit(0)
 
 # single substeps
@@ -167,7 +196,8 @@ if plan is not None:
     print(f"python launch context: {ms(py, N)} ms a substep ({len(nd_slots)} ndarrays, {len(sc_slots)} scalars); "
           f"compiled-kernel lookup {ms(look, N)} ms")
 
-if batched:
+def wall_batched() -> float:
+    """N substeps in calls of FRAME, one sync: seconds."""
     ti.sync()
     t = time.perf_counter()
     done = 0
@@ -176,16 +206,47 @@ if batched:
         sol.substeps(m, DT)
         done += m
     ti.sync()
-    bt = time.perf_counter() - t
+    return time.perf_counter() - t
+
+
+def host_batched() -> list:
+    """Seconds of 20 calls of BURST substeps, each after a sync (the host's time alone)."""
     hb = []
     for _ in range(20):
         ti.sync()
         t = time.perf_counter()
-        sol.substeps(32, DT)
+        sol.substeps(BURST, DT)
         hb.append(time.perf_counter() - t)
     ti.sync()
-    print(f"batched: {ms(bt, N)} ms a substep in calls of {FRAME} ({single / bt:.2f}x single); host "
-          f"{ms(min(hb), 32)} ms a substep (min over 20 graphs of 32; median {ms(sorted(hb)[10], 32)})", flush=True)
+    return hb
+
+
+R_FRAMES = REPS[-1]  # the R of the frames below
+if batched:
+    first = {}
+    for R in REPS:  # each R's kernel compiled (or loaded from the offline cache), then its graphs built
+        set_reps(R)
+        ti.sync()
+        t = time.perf_counter()
+        sol.substeps(R, DT)  # one launch
+        ti.sync()
+        first[R] = time.perf_counter() - t
+        sol.substeps(BURST, DT)
+        sol.substeps(FRAME, DT)
+    walls, hosts = {R: [] for R in REPS}, {R: [] for R in REPS}
+    for _ in range(a.rounds):  # the R values alternate: drifts of the machine touch them alike
+        for R in REPS:
+            set_reps(R)
+            walls[R].append(wall_batched())
+            hosts[R].append(min(host_batched()))
+    for R in REPS:
+        bw, bh = float(np.median(walls[R])), float(np.median(hosts[R]))
+        print(f"batched R={R}: wall {ms(bw, N)} ms a substep in calls of {FRAME} ({single / bw:.2f}x single; rounds "
+              f"{' '.join(ms(w, N) for w in walls[R])}); host {ms(bh, BURST)} ms a substep (min over 20 calls of "
+              f"{BURST}; rounds {' '.join(ms(h, BURST) for h in hosts[R])}); first call {first[R]:.2f} s "
+              f"(compilation or offline-cache load)", flush=True)
+    bt = float(np.median(walls[R_FRAMES]))
+    set_reps(R_FRAMES)
 
 # frames: substeps + stats() (a sync and read-back a frame)
 nf = max(1, N // FRAME)
@@ -200,7 +261,7 @@ for _ in range(nf):
     sol.stats()
 fr = time.perf_counter() - t
 print(f"frames: {ms(fr, nf * FRAME)} ms a substep with stats() after every {FRAME} "
-      f"({'batched' if batched else 'single'}); stats() {ms(fr - (bt if batched else single) * nf * FRAME / N, nf)} "
+      f"({f'batched, R={R_FRAMES}' if batched else 'single'}); stats() {ms(fr - (bt if batched else single) * nf * FRAME / N, nf)} "
       f"ms a frame beyond the substeps")
 
 # the per-frame work alone: stats() (run_frames, every frame), save_backup() (forward_sim, every frame)
@@ -225,14 +286,17 @@ if batched:
     for _ in range(300):
         sol.substep(DT)
     st1 = sol.get_state()
-    sol.set_state(st0["x"], st0["v"], st0["C"], st0["F"])
-    sol.time = t0
-    sol.substeps(300, DT)
-    st2 = sol.get_state()
     moved = float(np.abs(st1["x"] - st0["x"]).max())
-    diff = float(np.abs(st1["x"] - st2["x"]).max())
-    print(f"batched vs single, 300 substeps from one state: max |x| difference {diff:.3g} (domain units; "
-          f"the particles moved up to {moved:.3g}), bitwise {np.array_equal(st1['x'], st2['x'])}")
+    for R in REPS:
+        set_reps(R)
+        sol.set_state(st0["x"], st0["v"], st0["C"], st0["F"])
+        sol.time = t0
+        sol.substeps(300, DT)
+        st2 = sol.get_state()
+        diff = float(np.abs(st1["x"] - st2["x"]).max())
+        print(f"batched R={R} vs single, 300 substeps from one state: max |x| difference {diff:.3g} (domain units; "
+              f"the particles moved up to {moved:.3g}), bitwise {np.array_equal(st1['x'], st2['x'])}")
+    set_reps(None)
 
 # synthetic kernels: per-argument and per-task costs of a launch
 V1 = ti.types.ndarray(dtype=ti.f32, ndim=1)

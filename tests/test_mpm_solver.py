@@ -284,7 +284,7 @@ def test_stats_detect_nonfinite_and_escaped_particles():
 
 
 @pytest.mark.gpu
-def test_cuda_substeps_match_cpu():
+def test_cuda_substeps_match_cpu(monkeypatch):
     torch = pytest.importorskip("torch")
     if not torch.cuda.is_available():
         pytest.skip("CUDA not available")
@@ -293,13 +293,15 @@ def test_cuda_substeps_match_cpu():
     x, vol = block([0.35, 0.35, 0.3], [0.6, 0.55, 0.5], 1 / 64, seed=4)
     states = []
     try:
-        for arch, batched in (("cpu", False), ("cuda", False), ("cuda", True)):
+        for arch, reps in (("cpu", 0), ("cuda", 0), ("cuda", 1), ("cuda", 4)):
             s = MPMSolver([JELLY], n_grid=32, backend=arch)
             assert s.arch == arch
             s.set_particles(x, vol, np.zeros(len(x), int))
-            if batched:  # ti.graph batches (MPMSolver.substeps) on CUDA
+            if reps:  # ti.graph batches (MPMSolver.substeps) on CUDA, reps substeps a launch
+                monkeypatch.setenv("PHYSGS_TI_REPS", str(reps))
                 s.substeps(100, 1e-3)
-                assert sorted(s._batches._graphs) == [4, 32]
+                # (substeps a launch, launches a graph): 100 = 3 x 32 + 4, or 4 x (16 + 8 + 1)
+                assert sorted(s._batches._graphs) == ([(1, 4), (1, 32)] if reps == 1 else [(4, 1), (4, 8), (4, 16)])
             else:
                 for _ in range(100):
                     s.substep(1e-3)
@@ -319,7 +321,9 @@ def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
     """MPMSolver.substeps (ti.graph batches of the substep kernel) gives bit for bit the state
     and time of as many substep calls, across a change of dt (the velocities re-staggered) and
     with batch sizes that are not powers of two, under a force that changes with the time of
-    each substep (wind at 20 Hz); PHYSGS_TI_GRAPH=0 runs them one by one."""
+    each substep (wind at 20 Hz); so does it with 2 substeps a launch (PHYSGS_TI_REPS=2:
+    kernels.build's substep_reps, with counts that leave one substep for the one-substep
+    kernel); PHYSGS_TI_GRAPH=0 runs them one by one."""
     x, vol = block([0.35, 0.4, 0.3], [0.55, 0.6, 0.45], 1 / 48, seed=3)
     dyn = Dynamics.from_config({"boundary_conditions": [
         {"type": "wind", "instance": "jelly", "mean": [0.5, 0.0, 0.0], "amplitude": [30.0, 0.0, 0.0],
@@ -327,8 +331,9 @@ def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
     v0 = np.tile([0.4, -0.2, 0.0], (len(x), 1))
     schedule = [(1, 5e-4), (37, 5e-4), (6, 8e-4), (64, 8e-4)]
     runs = []
-    for mode in ("single", "batched", "off"):
+    for mode in ("single", "batched", "reps", "off"):
         monkeypatch.setenv("PHYSGS_TI_GRAPH", "0" if mode == "off" else "1")
+        monkeypatch.setenv("PHYSGS_TI_REPS", "2" if mode == "reps" else "1")
         s = MPMSolver([JELLY], n_grid=24, dynamics=dyn, backend="cpu")
         s.set_particles(x, vol, np.zeros(len(x), int), velocity=v0)
         for n, dt in schedule:
@@ -337,18 +342,36 @@ def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
                     s.substep(dt)
             else:
                 s.substeps(n, dt)
-        if mode == "batched":
-            assert sorted(s._batches._graphs) == [1, 2, 4, 32]  # 37 = 32 + 4 + 1, 6 = 4 + 2, 64 = 2 x 32
+        if mode == "batched":  # (substeps a launch, launches a graph): 37 = 32 + 4 + 1, 6 = 4 + 2, 64 = 2 x 32
+            assert sorted(s._batches._graphs) == [(1, 1), (1, 2), (1, 4), (1, 32)]
+        elif mode == "reps":  # 1 = one; 37 = 2 x (16 + 2) + one; 6 = 2 x (2 + 1); 64 = 2 x 32
+            assert sorted(s._batches._graphs) == [(1, 1), (2, 1), (2, 2), (2, 16), (2, 32)]
         else:
             assert s._batches is None
         runs.append((s.get_state(), s.time, s.stats()))
-    (st0, t0, sa0), (st1, t1, sa1), (st2, t2, _) = runs
-    assert t0 == t1 == t2
-    for k in ("x", "v", "C", "F"):
-        assert np.array_equal(st0[k], st1[k]), k
-        assert np.array_equal(st0[k], st2[k]), k
-    assert np.abs(st1["x"] - x).max() > 0.01  # it fell and moved
-    assert sa0["clamped"] == sa1["clamped"]
+    (st0, t0, sa0), *others = runs
+    for st, t, sa in others:
+        assert t == t0
+        for k in ("x", "v", "C", "F"):
+            assert np.array_equal(st0[k], st[k]), k
+        assert sa0["clamped"] == sa["clamped"]
+    assert np.abs(others[0][0]["x"] - x).max() > 0.01  # it fell and moved
+
+
+def test_reps_knob(monkeypatch):
+    """PHYSGS_TI_REPS: substeps a launch of MPMSolver.substeps (default 4 on CUDA, 1 on the
+    CPU); a bad value is an error naming the variable."""
+    from physgs_steps.errors import ConfigError
+    from physgs_steps.mpm.solver import reps_per_launch
+
+    monkeypatch.delenv("PHYSGS_TI_REPS", raising=False)
+    assert (reps_per_launch("cpu"), reps_per_launch("cuda")) == (1, 4)
+    monkeypatch.setenv("PHYSGS_TI_REPS", "8")
+    assert reps_per_launch("cpu") == reps_per_launch("cuda") == 8
+    for bad in ("0", "-2", "2.5", "four", "33"):
+        monkeypatch.setenv("PHYSGS_TI_REPS", bad)
+        with pytest.raises(ConfigError, match="PHYSGS_TI_REPS"):
+            reps_per_launch("cuda")
 
 
 def test_block_dim_knob_reaches_taichi():

@@ -712,13 +712,20 @@ def build(spec: Spec) -> SimpleNamespace:
                 P2G.acc_add(acc, split, s, fx, dx, mv, affine, mass)
                 touch_run = ti.max(touch_run, touch)
 
-    @ti.kernel
-    def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1, act_bits: I1,
-                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2,
-                bphi: S4, body_c: V1d, body_R: M1d,
-                mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32,
-                t: ti.f32, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1,
-                part: ti.template()):
+    @ti.func
+    def _substep(x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), tau: ti.template(),
+                 ep: ti.template(), p_vol: ti.template(), p_face: ti.template(), p_mass: ti.template(),
+                 mat: ti.template(), act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(),
+                 grid_c: ti.template(), grid_b: ti.template(), grid_o: ti.template(), grid_r: ti.template(),
+                 grid_rm: ti.template(), grid_rv: ti.template(), mbody: ti.template(), gpart: ti.template(),
+                 gbody: ti.template(), bphi: ti.template(), body_c: ti.template(), body_R: ti.template(),
+                 mparams: ti.template(), mcombo: ti.template(), dyn: ti.template(), lvl_phi: ti.template(),
+                 lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), box: ti.template(), dt: ti.template(),
+                 t: ti.template(), dx: ti.template(), wall: ti.template(), gx: ti.template(), gy: ti.template(),
+                 gz: ti.template(), damp: ti.template(), cell_start: ti.template(), part: ti.template()):
+        """One substep at time ``t``: the body of the kernels ``substep`` (one substep a launch)
+        and ``substep_reps(R)`` (R a launch), inlined where it is called; its top-level loops
+        are the launch's offloaded tasks."""
         # part (compile-time): 0 the whole substep; with free rigid bodies it runs as two launches
         # around their contact solve on the grid (rigid.py "Coupling"): 1 up to the bodies' grid
         # fields (P2G, grid update part 1, gbody), 2 the rest (covered nodes <- the fields after the
@@ -1120,7 +1127,52 @@ def build(spec: Spec) -> SimpleNamespace:
                     if ti.static(any_fracture):
                         ep[p] = ep_p
 
-    return SimpleNamespace(substep=substep, spec=spec, colliders=col)
+    @ti.kernel
+    def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1, act_bits: I1,
+                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4,
+                mbody: I1, gpart: D3, gbody: D2, bphi: S4, body_c: V1d, body_R: M1d, mparams: S2, mcombo: I1, dyn: S2,
+                lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32, t: ti.f32, dx: ti.f32,
+                wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1, part: ti.template()):
+        """One substep of ``dt`` at time ``t`` (``part``: _substep)."""
+        _substep(x, v, C, F, tau, ep, p_vol, p_face, p_mass, mat, act_bits, grid_v, grid_m, grid_c, grid_b, grid_o,
+                 grid_r, grid_rm, grid_rv, mbody, gpart, gbody, bphi, body_c, body_R, mparams, mcombo, dyn, lvl_phi,
+                 lvl_id, lvl_rows, err, box, dt, t, dx, wall, gx, gy, gz, damp, cell_start, part)
+
+    reps_kernels = {}
+
+    def substep_reps(reps: int):
+        """The kernel of ``reps`` whole substeps a launch (part 0, no free rigid bodies): the
+        arguments of ``substep`` with the time ``t`` replaced by ``ts``, the ``reps`` times
+        (f32) of its substeps, and ``_substep`` inlined ``reps`` times, one after the other.
+
+        Why: on CUDA a small scene's substep is launch-bound, and Taichi's host work per launch
+        (the launch context, the ~40 arguments, the argument buffer's copy) is paid once for
+        ``reps`` substeps; the launch still holds each substep's offloaded tasks, in the same
+        order, so the state is bit for bit that of ``reps`` launches of ``substep`` (on the
+        CPU).  Each time is passed, not computed from the first one: the solver accumulates its
+        time in Python floats and each substep gets that time rounded to f32.  The cost: the
+        kernel is ``reps`` copies of the substep's code and compiles about ``reps`` times as
+        long (once per machine: the offline cache keeps it).  Built once per ``reps``."""
+        if reps not in reps_kernels:
+            Ts = ti.types.vector(reps, ti.f32)
+
+            @ti.kernel
+            def substep_r(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1,
+                          act_bits: I1, grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4,
+                          grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2, bphi: S4, body_c: V1d,
+                          body_R: M1d, mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2,
+                          err: I1, box: I2, dt: ti.f32, ts: Ts, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32,
+                          gz: ti.f32, damp: ti.f32, cell_start: I1):
+                for r in ti.static(range(reps)):
+                    _substep(x, v, C, F, tau, ep, p_vol, p_face, p_mass, mat, act_bits, grid_v, grid_m, grid_c,
+                             grid_b, grid_o, grid_r, grid_rm, grid_rv, mbody, gpart, gbody, bphi, body_c, body_R,
+                             mparams, mcombo, dyn, lvl_phi, lvl_id, lvl_rows, err, box, dt, ts[r], dx, wall, gx, gy,
+                             gz, damp, cell_start, 0)
+
+            reps_kernels[reps] = substep_r
+        return reps_kernels[reps]
+
+    return SimpleNamespace(substep=substep, substep_reps=substep_reps, spec=spec, colliders=col)
 
 
 @functools.lru_cache(maxsize=None)

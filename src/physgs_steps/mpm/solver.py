@@ -654,13 +654,16 @@ class MPMSolver:
 
     def substeps(self, n: int, dt: float) -> None:
         """Advance by ``n`` substeps of ``dt`` seconds: the same as ``n`` calls of :meth:`substep`
-        (the same kernel with the same arguments, so the same state bit for bit on the CPU).
+        (the same kernel code with the same arguments and times, so the same state bit for bit on
+        the CPU).
 
         Without free rigid bodies the substeps go to Taichi in batches, each one call of a
-        ``ti.graph`` that holds 1, 2, 4, ... 32 launches of the substep kernel (:class:`_Batches`):
-        Taichi's C++ then sets the arguments of each launch, instead of Python (about 40
-        arguments a launch; the per-launch host time that leaves the GPU idle between a small
-        scene's kernels, README "GPU").  A batch ends where the device re-sort is due.
+        ``ti.graph`` that holds 1, 2, 4, ... 32 launches (:class:`_Batches`): Taichi's C++ then
+        sets the arguments of each launch, instead of Python (about 40 arguments a launch; the
+        per-launch host time that leaves the GPU idle between a small scene's kernels, README
+        "GPU").  Each launch runs R substeps (:func:`reps_per_launch`, ``PHYSGS_TI_REPS``; the
+        remainder of a batch one a launch), so Taichi's fixed and per-argument work of a launch
+        is paid once per R substeps.  A batch ends where the device re-sort is due.
         ``PHYSGS_TI_GRAPH=0`` runs them one by one."""
         n = int(n)
         if n <= 0:
@@ -669,6 +672,7 @@ class MPMSolver:
             for _ in range(n):
                 self.substep(dt)
             return
+        reps = reps_per_launch(self.arch)
         done = 0
         while done < n:
             damp = self._begin_substep(dt)
@@ -677,14 +681,14 @@ class MPMSolver:
                 m = min(m, self.resort_every - self._since_sort)
             if self._batches is None:
                 try:
-                    self._batches = _Batches(self._k.substep, self._substep_args(dt, damp) + (0,))
+                    self._batches = _Batches(self._k, self._substep_args(dt, damp))
                 except Exception as e:  # pragma: no cover - Taichi without the graph API used here
                     _log.warning("substep batches unavailable (%s: %s): one launch a substep", type(e).__name__, e)
                     self._batches = False
                     for _ in range(n - done):
                         self.substep(dt)
                     return
-            self.time = self._batches.run(self._substep_args(dt, damp), m, self.time, dt)
+            self.time = self._batches.run(self._substep_args(dt, damp), m, self.time, dt, reps)
             self._since_sort += m
             done += m
 
@@ -872,75 +876,143 @@ def batches_enabled() -> bool:
     return os.environ.get("PHYSGS_TI_GRAPH", "1") != "0"
 
 
+DEFAULT_REPS = {"cpu": 1, "cuda": 4}  # reps_per_launch's default per arch
+REPS_MAX = 32
+
+
+def reps_per_launch(arch: str) -> int:
+    """Substeps a launch in :meth:`MPMSolver.substeps`' batches: ``PHYSGS_TI_REPS`` (1 to
+    :data:`REPS_MAX`), else :data:`DEFAULT_REPS` of the arch.  R trades host time for compile
+    time (kernels.build's ``substep_reps``): on CUDA a small scene is launch-bound and a launch
+    of R substeps pays Taichi's per-launch work once; the kernel holds R copies of the
+    substep's code and compiles R times as long on a machine without the offline cache.  On
+    the CPU a launch's host work is a small part of a substep: 1.  ``PHYSGS_TI_REPS=1``: one
+    substep a launch, the one-substep kernel alone."""
+    raw = os.environ.get("PHYSGS_TI_REPS", "").strip()
+    if not raw:
+        return DEFAULT_REPS[arch]
+    try:
+        reps = int(raw)
+    except ValueError:
+        reps = 0
+    if not 1 <= reps <= REPS_MAX:
+        raise ConfigError("PHYSGS_TI_REPS", f"must be a whole number of substeps a launch, 1 to {REPS_MAX}, "
+                                            f"got {raw!r}")
+    return reps
+
+
 class _Batches:
-    """Runs the substep kernel ``m`` times through ``ti.graph``: one compiled graph per batch
-    size 2^j (j <= :data:`_BATCH_LOG2`), each holding 2^j launches of the kernel's compiled
-    instance for ``part`` = 0, with the arrays and scalars shared and the time ``t`` an argument
-    of each launch; ``m`` substeps are the binary digits of ``m`` in batches, largest first.
+    """Runs ``m`` substeps through ``ti.graph``: one compiled graph per kernel and batch size 2^j
+    (j <= :data:`_BATCH_LOG2`), each holding 2^j launches of that kernel, with the arrays and
+    scalars shared and the times arguments of each launch.  The kernels: the substep kernel's
+    compiled instance for ``part`` = 0 (one substep a launch, time ``t``), and for R > 1
+    kernels.build's ``substep_reps(R)`` (R substeps a launch, their times ``ts``).  ``m``
+    substeps are ``m // R`` launches of R then ``m % R`` of one, each count in the binary digits
+    of batches, largest first.
 
     Taichi 1.7's Python ``GraphBuilder.dispatch`` cannot take a kernel with template arguments
     (``part``): the graph is built on the compiled instance directly (``ensure_compiled`` with
     the real arguments, as a plain call does), with symbolic arguments for the others, named as
     the kernel's parameters."""
 
-    def __init__(self, kernel, args: tuple):
+    _ND, _SCALAR, _MATRIX = range(3)
+
+    def __init__(self, kernels, args: tuple):
+        """``kernels``: kernels.build's namespace; ``args``: MPMSolver._substep_args."""
         from taichi.graph import _graph
-        from taichi.types import ndarray_type, template
 
-        primal = kernel._primal
-        key = primal.ensure_compiled(*args)
-        self._t_kernel = primal.compiled_kernels[key]
+        self._k = kernels
         self._Arg, self._Kind, self._Builder = ti.graph.Arg, ti.graph.ArgKind, _graph.GraphBuilder
-        self._params = []  # (name, annotation, is an ndarray) of the non-template parameters, in order
-        for a, val in zip(primal.arguments, args):
-            if isinstance(a.annotation, template):
-                if val != 0:
-                    raise ValueError("batches are built for part = 0")
-                continue
-            self._params.append((a.name, a.annotation, isinstance(a.annotation, ndarray_type.NdarrayType)))
-        if [p[0] for p in self._params].count("t") != 1:
+        self._kernels: dict = {}  # R -> (compiled kernel, [(name, annotation, kind)] of its non-template parameters)
+        self._graphs: dict = {}  # (R, size) -> compiled graph
+        names = [name for name, _ann, _kind in self._compiled(1, args)[1]]
+        if names.count("t") != 1:
             raise ValueError("the substep kernel has no time argument 't'")
-        self._graphs: dict = {}
+        self._i_t = names.index("t")
 
-    def _graph(self, size: int):
-        g = self._graphs.get(size)
+    def _compiled(self, reps: int, args: tuple):
+        got = self._kernels.get(reps)
+        if got is None:
+            from taichi.lang.matrix import MatrixType
+            from taichi.types import ndarray_type, template
+
+            if reps == 1:
+                kernel, call = self._k.substep, args + (0,)  # part 0: the whole substep
+            else:
+                kernel = self._k.substep_reps(reps)
+                call = args[: self._i_t] + (ti.Vector([0.0] * reps, dt=ti.f32),) + args[self._i_t + 1:]
+            primal = kernel._primal
+            key = primal.ensure_compiled(*call)
+            params = []
+            for a, val in zip(primal.arguments, call):
+                if isinstance(a.annotation, template):
+                    if val != 0:
+                        raise ValueError("batches are built for part = 0")
+                    continue
+                kind = (self._ND if isinstance(a.annotation, ndarray_type.NdarrayType) else
+                        self._MATRIX if isinstance(a.annotation, MatrixType) else self._SCALAR)
+                params.append((a.name, a.annotation, kind))
+            got = self._kernels[reps] = (primal.compiled_kernels[key], params)
+        return got
+
+    def _graph(self, reps: int, size: int):
+        g = self._graphs.get((reps, size))
         if g is None:
+            t_kernel, params = self._kernels[reps]
             gb = self._Builder()
             shared = {}
-            for name, ann, is_nd in self._params:
-                if is_nd:
+            for name, ann, kind in params:
+                if kind == self._ND:
                     shared[name] = self._Arg(self._Kind.NDARRAY, name, dtype=ann.dtype, ndim=ann.ndim)
-                elif name != "t":
+                elif name not in ("t", "ts"):
                     shared[name] = self._Arg(self._Kind.SCALAR, name, ann)
             for k in range(size):
-                syms = [shared[name] if name != "t" else self._Arg(self._Kind.SCALAR, f"t{k}", ann)
-                        for name, ann, _ in self._params]
-                gb._graph_builder.dispatch(self._t_kernel, syms)
-            g = self._graphs[size] = gb._graph_builder.compile()
+                syms = []
+                for name, ann, kind in params:
+                    if name == "t":  # the launch's own time
+                        syms.append(self._Arg(self._Kind.SCALAR, f"t{k}", ann))
+                    elif name == "ts":  # the launch's R times
+                        syms.append(self._Arg(self._Kind.MATRIX, f"ts{k}", dtype=ann))
+                    else:
+                        syms.append(shared[name])
+                gb._graph_builder.dispatch(t_kernel, syms)
+            g = self._graphs[(reps, size)] = gb._graph_builder.compile()
         return g
 
-    def run(self, args: tuple, m: int, time: float, dt: float) -> float:
-        """``m`` substeps from ``time``; ``args`` as MPMSolver._substep_args (its ``t`` unused).
-        Returns the time after them, advanced by ``dt`` per substep as MPMSolver.substep does."""
+    def run(self, args: tuple, m: int, time: float, dt: float, reps: int = 1) -> float:
+        """``m`` substeps from ``time``, ``reps`` a launch (the rest one a launch); ``args`` as
+        MPMSolver._substep_args (its ``t`` unused).  Returns the time after them, advanced by
+        ``dt`` per substep as MPMSolver.substep does; each substep's time is the one that
+        MPMSolver.substep would pass (``float(time)``, rounded to f32 by Taichi)."""
         base = {}
-        for (name, _ann, is_nd), val in zip(self._params, args):
+        for (name, _ann, kind), val in zip(self._kernels[1][1], args):
             if name != "t":
-                base[name] = val.arr if is_nd else val
+                base[name] = val.arr if kind == self._ND else val
         config = _current_prog_config()
-        size = 1 << _BATCH_LOG2
-        while m > 0:
-            while size > m:
-                size >>= 1
-            values = dict(base)
-            for k in range(size):
-                values[f"t{k}"] = float(time)
-                time += dt
-            self._graph(size).jit_run(config, values)
-            m -= size
+        q, rest = divmod(m, reps)
+        for r, count in ((reps, q), (1, rest)):
+            if count:
+                self._compiled(r, args)
+            size = 1 << _BATCH_LOG2
+            while count > 0:
+                while size > count:
+                    size >>= 1
+                values = dict(base)
+                for k in range(size):
+                    times = []
+                    for _ in range(r):
+                        times.append(float(time))
+                        time += dt
+                    if r == 1:
+                        values[f"t{k}"] = times[0]
+                    else:
+                        values[f"ts{k}"] = times
+                self._graph(r, size).jit_run(config, values)
+                count -= size
         return time
 
 
-_BATCH_LOG2 = 5  # batches of at most 32 substeps
+_BATCH_LOG2 = 5  # batches of at most 32 launches
 
 
 def _current_prog_config():
