@@ -320,21 +320,22 @@ def test_cuda_substeps_match_cpu(monkeypatch):
 def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
     """MPMSolver.substeps (ti.graph batches of the substep kernel) gives bit for bit the state
     and time of as many substep calls, across a change of dt (the velocities re-staggered) and
-    with batch sizes that are not powers of two, under a force that changes with the time of
-    each substep (wind at 20 Hz); so does it with 2 substeps a launch (PHYSGS_TI_REPS=2:
-    kernels.build's substep_reps, with counts that leave one substep for the one-substep
-    kernel); PHYSGS_TI_GRAPH=0 runs them one by one."""
+    device re-sorts (coarsened P2G, every 40 substeps: batches end there), with batch sizes that
+    are not powers of two, under a force that changes with the time of each substep (wind at
+    20 Hz); so does it with 2 substeps a launch (PHYSGS_TI_REPS=2: kernels.build's
+    substep_reps, odd counts leaving one substep to the one-substep kernel);
+    PHYSGS_TI_GRAPH=0 runs them one by one."""
     x, vol = block([0.35, 0.4, 0.3], [0.55, 0.6, 0.45], 1 / 48, seed=3)
     dyn = Dynamics.from_config({"boundary_conditions": [
         {"type": "wind", "instance": "jelly", "mean": [0.5, 0.0, 0.0], "amplitude": [30.0, 0.0, 0.0],
          "frequency": 20.0}]}, "test")
     v0 = np.tile([0.4, -0.2, 0.0], (len(x), 1))
-    schedule = [(1, 5e-4), (37, 5e-4), (6, 8e-4), (64, 8e-4)]
+    schedule = [(1, 5e-4), (37, 5e-4), (6, 8e-4), (64, 8e-4)]  # re-sorts before substeps 41 and 81
     runs = []
     for mode in ("single", "batched", "reps", "off"):
         monkeypatch.setenv("PHYSGS_TI_GRAPH", "0" if mode == "off" else "1")
         monkeypatch.setenv("PHYSGS_TI_REPS", "2" if mode == "reps" else "1")
-        s = MPMSolver([JELLY], n_grid=24, dynamics=dyn, backend="cpu")
+        s = MPMSolver([JELLY], n_grid=24, dynamics=dyn, backend="cpu", p2g="coarsened", resort_every=40)
         s.set_particles(x, vol, np.zeros(len(x), int), velocity=v0)
         for n, dt in schedule:
             if mode == "single":
@@ -342,12 +343,16 @@ def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
                     s.substep(dt)
             else:
                 s.substeps(n, dt)
-        if mode == "batched":  # (substeps a launch, launches a graph): 37 = 32 + 4 + 1, 6 = 4 + 2, 64 = 2 x 32
-            assert sorted(s._batches._graphs) == [(1, 1), (1, 2), (1, 4), (1, 32)]
-        elif mode == "reps":  # 1 = one; 37 = 2 x (16 + 2) + one; 6 = 2 x (2 + 1); 64 = 2 x 32
-            assert sorted(s._batches._graphs) == [(1, 1), (2, 1), (2, 2), (2, 16), (2, 32)]
+        # the graphs, (substeps a launch, launches): batches of 1, 37, 2 | 4, 36 | 28 substeps
+        # (| a re-sort), one a launch: 37 = 32 + 4 + 1, 36 = 32 + 4, 28 = 16 + 8 + 4; two a
+        # launch: 37 = 2 x (16 + 2) + 1, 36 = 2 x (16 + 2), 28 = 2 x (8 + 4 + 2)
+        if mode == "batched":
+            assert sorted(s._batches._graphs) == [(1, 1), (1, 2), (1, 4), (1, 8), (1, 16), (1, 32)]
+        elif mode == "reps":
+            assert sorted(s._batches._graphs) == [(1, 1), (2, 1), (2, 2), (2, 4), (2, 8), (2, 16)]
         else:
             assert s._batches is None
+        assert s.sort_generation == 3  # at load, then twice
         runs.append((s.get_state(), s.time, s.stats()))
     (st0, t0, sa0), *others = runs
     for st, t, sa in others:
@@ -355,7 +360,7 @@ def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
         for k in ("x", "v", "C", "F"):
             assert np.array_equal(st0[k], st[k]), k
         assert sa0["clamped"] == sa["clamped"]
-    assert np.abs(others[0][0]["x"] - x).max() > 0.01  # it fell and moved
+    assert np.abs(st0["x"] - x).max() > 0.01  # it fell and moved
 
 
 def test_reps_knob(monkeypatch):

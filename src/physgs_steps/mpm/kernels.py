@@ -725,7 +725,10 @@ def build(spec: Spec) -> SimpleNamespace:
                  gz: ti.template(), damp: ti.template(), cell_start: ti.template(), part: ti.template()):
         """One substep at time ``t``: the body of the kernels ``substep`` (one substep a launch)
         and ``substep_reps(R)`` (R a launch), inlined where it is called; its top-level loops
-        are the launch's offloaded tasks."""
+        are the launch's offloaded tasks.  Every argument is a template, so the body reads the
+        kernel's own arguments as when it was the kernel itself (the same compiled code: the
+        same state bit for bit, the same offloaded tasks); with the scalars passed by value
+        (copied into locals) the CPU state after 11 substeps differed in its last bits."""
         # part (compile-time): 0 the whole substep; with free rigid bodies it runs as two launches
         # around their contact solve on the grid (rigid.py "Coupling"): 1 up to the bodies' grid
         # fields (P2G, grid update part 1, gbody), 2 the rest (covered nodes <- the fields after the

@@ -897,7 +897,7 @@ def reps_per_launch(arch: str) -> int:
         reps = 0
     if not 1 <= reps <= REPS_MAX:
         raise ConfigError("PHYSGS_TI_REPS", f"must be a whole number of substeps a launch, 1 to {REPS_MAX}, "
-                                            f"got {raw!r}")
+                                            f"got {raw!r}", source="the environment")
     return reps
 
 
