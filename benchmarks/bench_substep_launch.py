@@ -22,8 +22,8 @@ substeps it prints, per substep (milliseconds unless marked):
   the host time per substep of one call of 64 substeps (min over 20 calls; 64 substeps are 384
   offloaded tasks whatever R, too few to fill CUDA's launch queue); ``first call``: the first
   call with that R, one launch (its kernel's compilation, or its load from Taichi's offline
-  cache; R = 1: already loaded); and ``R=... vs single``: 300 substeps from one state, the largest difference in x
-  from 300 calls of ``substep``;
+  cache; R = 1: already loaded); and ``R=... vs single``: 300 substeps from one state, the
+  largest difference in x from 300 calls of ``substep``;
 * ``frames``: frames of 60 substeps, each followed by ``solver.stats()`` (a host sync and a
   read-back, as run_frames does), with the batched substeps where the tree has them;
 * ``per frame``: ``stats()`` and ``save_backup()`` (forward_sim's every frame) alone;
@@ -127,8 +127,8 @@ if a.profile:
 
     prof = get_default_kernel_profiler()
 
-    def profile(run, n: int, title: str) -> None:
-        """``run()`` under the profiler: offloaded tasks and device time per ``n``."""
+    def profile(run, n: int, title: str, unit: str = "substep") -> None:
+        """``run()`` under the profiler: offloaded tasks and device time per ``n`` units."""
         ti.sync()
         ti.profiler.clear_kernel_profiler_info()
         prof._traced_records.clear()
@@ -139,20 +139,20 @@ if a.profile:
         for rec in prof._traced_records:
             per[rec.name] += rec.kernel_time
             count[rec.name] += 1
-        print(f"profile of {title}: {sum(count.values()) / n:.1f} offloaded tasks (launches) a {title.split()[0]}, "
-              f"device time {sum(per.values()) / n:.4f} ms a {title.split()[0]}")
+        print(f"profile of {title}: {sum(count.values()) / n:.1f} offloaded tasks (launches) a {unit}, "
+              f"device time {sum(per.values()) / n:.4f} ms a {unit}")
         for name, v in sorted(per.items(), key=lambda kv: -kv[1]):
             print(f"  {v / n:8.4f} ms  x{count[name] / n:.2f}  {name}")
 
     n = 200
-    profile(lambda: [sol.substep(DT) for _ in range(n)], n, "substep (one a launch, substep())")
+    profile(lambda: [sol.substep(DT) for _ in range(n)], n, "substep(), one substep a launch")
     if batched:
         for R in REPS:
             set_reps(R)
             sol.substeps(n, DT)  # compiled or loaded before the profile
-            profile(lambda: sol.substeps(n, DT), n, f"substep (substeps() with R={R})")
+            profile(lambda: sol.substeps(n, DT), n, f"substeps() with R={R}")
         set_reps(None)
-    profile(lambda: [sol.stats() for _ in range(20)], 20, "call of stats()")
+    profile(lambda: [sol.stats() for _ in range(20)], 20, "stats()", "call")
     sys.exit(0)
 
 # single substeps
