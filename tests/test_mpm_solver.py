@@ -317,6 +317,18 @@ def test_cuda_substeps_match_cpu(monkeypatch):
         assert np.allclose(st_cpu["j_min"], st["j_min"], rtol=1e-3) and np.allclose(st_cpu["j_max"], st["j_max"], rtol=1e-3)
 
 
+def _windy_jelly() -> tuple[MPMSolver, np.ndarray]:
+    """A small jelly block in wind at 20 Hz (a force that changes with each substep's time),
+    coarsened P2G re-sorted every 40 substeps, CPU: the solver and its initial positions."""
+    x, vol = block([0.35, 0.4, 0.3], [0.55, 0.6, 0.45], 1 / 48, seed=3)
+    dyn = Dynamics.from_config({"boundary_conditions": [
+        {"type": "wind", "instance": "jelly", "mean": [0.5, 0.0, 0.0], "amplitude": [30.0, 0.0, 0.0],
+         "frequency": 20.0}]}, "test")
+    s = MPMSolver([JELLY], n_grid=24, dynamics=dyn, backend="cpu", p2g="coarsened", resort_every=40)
+    s.set_particles(x, vol, np.zeros(len(x), int), velocity=np.tile([0.4, -0.2, 0.0], (len(x), 1)))
+    return s, x
+
+
 def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
     """MPMSolver.substeps (ti.graph batches of the substep kernel) gives bit for bit the state
     and time of as many substep calls, across a change of dt (the velocities re-staggered) and
@@ -325,18 +337,12 @@ def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
     20 Hz); so does it with 2 substeps a launch (PHYSGS_TI_REPS=2: kernels.build's
     substep_reps, odd counts leaving one substep to the one-substep kernel);
     PHYSGS_TI_GRAPH=0 runs them one by one."""
-    x, vol = block([0.35, 0.4, 0.3], [0.55, 0.6, 0.45], 1 / 48, seed=3)
-    dyn = Dynamics.from_config({"boundary_conditions": [
-        {"type": "wind", "instance": "jelly", "mean": [0.5, 0.0, 0.0], "amplitude": [30.0, 0.0, 0.0],
-         "frequency": 20.0}]}, "test")
-    v0 = np.tile([0.4, -0.2, 0.0], (len(x), 1))
     schedule = [(1, 5e-4), (37, 5e-4), (6, 8e-4), (64, 8e-4)]  # re-sorts before substeps 41 and 81
     runs = []
     for mode in ("single", "batched", "reps", "off"):
         monkeypatch.setenv("PHYSGS_TI_GRAPH", "0" if mode == "off" else "1")
         monkeypatch.setenv("PHYSGS_TI_REPS", "2" if mode == "reps" else "1")
-        s = MPMSolver([JELLY], n_grid=24, dynamics=dyn, backend="cpu", p2g="coarsened", resort_every=40)
-        s.set_particles(x, vol, np.zeros(len(x), int), velocity=v0)
+        s, x = _windy_jelly()
         for n, dt in schedule:
             if mode == "single":
                 for _ in range(n):
@@ -361,6 +367,35 @@ def test_batched_substeps_give_bitwise_single_substeps(monkeypatch):
             assert np.array_equal(st0[k], st[k]), k
         assert sa0["clamped"] == sa["clamped"]
     assert np.abs(st0["x"] - x).max() > 0.01  # it fell and moved
+
+
+def test_run_frames_launches_each_substep_kernel_first_in_its_first_substep_window(monkeypatch):
+    """run_frames times the substep kernels' first launches (compilation or cache load) apart
+    from the frames' substeps: with 2 substeps a launch, frame 1 runs one substep, then one
+    launch of 2, then the rest; the same state bit for bit as one substep a launch."""
+    import logging
+
+    from physgs_steps.mpm.runner import run_frames
+    from physgs_steps.mpm.stability import Thresholds
+    from physgs_steps.mpm.timestep import TimeStepper
+
+    runs = []
+    for reps in ("1", "2"):
+        monkeypatch.setenv("PHYSGS_TI_REPS", reps)
+        s, _x = _windy_jelly()
+        calls = []
+        batched = s.substeps
+        monkeypatch.setattr(s, "substeps", lambda n, dt: (calls.append(n), batched(n, dt)))
+        res = run_frames(s, 3, TimeStepper(fps=100.0, max_substeps=40), Thresholds(), lambda *a: None,
+                         logging.getLogger("test"))
+        assert res.stable and res.first_substep_seconds > 0
+        n1, n2 = res.substeps  # frames 1 and 2
+        assert calls == ([2, n1 - 3, n2] if reps == "2" else [n1 - 1, n2])
+        runs.append((s.get_state(), s.time, res.substeps))
+    (st0, t0, n0), (st1, t1, n1) = runs
+    assert t0 == t1 and n0 == n1
+    for k in ("x", "v", "C", "F"):
+        assert np.array_equal(st0[k], st1[k]), k
 
 
 def test_reps_knob(monkeypatch):

@@ -38,8 +38,8 @@ class RunResult:
     message: str | None = None
     info: dict | None = None
     last_stable_frame: int = 0
-    first_substep_seconds: float = 0.0        # includes kernel compilation / cache load
-    step_seconds: float = 0.0                 # substeps and checks, without the first substep
+    first_substep_seconds: float = 0.0        # the substep kernels' first launches: compilation / cache load
+    step_seconds: float = 0.0                 # substeps and checks, without those first launches
     callback_seconds: float = 0.0
     max_speed: float = 0.0
     j_range: list = field(default_factory=lambda: [1.0, 1.0])
@@ -129,10 +129,14 @@ def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thres
         if k == 1 and n_sub > 0:
             t0 = _time.perf_counter()
             solver.substep(plan.dt)
+            n_sub -= 1
+            reps = solver.substeps_per_launch()
+            if 1 < reps <= n_sub:  # the kernel of R substeps a launch: its first launch, compiled or loaded
+                solver.substeps(reps, plan.dt)
+                n_sub -= reps
             _sync()
             res.first_substep_seconds = _time.perf_counter() - t0
             t_start += res.first_substep_seconds
-            n_sub -= 1
         solver.substeps(n_sub, plan.dt)  # batched launches (MPMSolver.substeps)
         if device_wait is not None:
             device_wait()

@@ -692,6 +692,13 @@ class MPMSolver:
             self._since_sort += m
             done += m
 
+    def substeps_per_launch(self) -> int:
+        """Substeps in each launch of :meth:`substeps`' batches: R (:func:`reps_per_launch`), or
+        1 where it runs them one by one (free rigid bodies, ``PHYSGS_TI_GRAPH=0``)."""
+        if self.rigid is not None or self._batches is False or not batches_enabled():
+            return 1
+        return reps_per_launch(self.arch)
+
     def substep(self, dt: float) -> None:
         """Advance by one substep of ``dt`` seconds (CONTRACTS.md step plus scene dynamics)."""
         damp = self._begin_substep(dt)

@@ -155,7 +155,7 @@ class SimOutput:
     frames: int                 # stable frames handed out (frame 0 included)
     substeps: int
     sim_seconds: float          # wall seconds of the substeps (compilation excluded)
-    first_substep_seconds: float  # the first substep (kernel compilation or cache load)
+    first_substep_seconds: float  # the substep kernels' first launches (kernel compilation or cache load)
     wall_seconds: float         # everything: set-up, compilation, substeps, measurements
     n_particles: int
     timed_out: bool = False
