@@ -399,13 +399,13 @@ def test_run_frames_launches_each_substep_kernel_first_in_its_first_substep_wind
 
 
 def test_reps_knob(monkeypatch):
-    """PHYSGS_TI_REPS: substeps a launch of MPMSolver.substeps (default 4 on CUDA, 1 on the
+    """PHYSGS_TI_REPS: substeps a launch of MPMSolver.substeps (default 2 on CUDA, 1 on the
     CPU); a bad value is an error naming the variable."""
     from physgs_steps.errors import ConfigError
     from physgs_steps.mpm.solver import reps_per_launch
 
     monkeypatch.delenv("PHYSGS_TI_REPS", raising=False)
-    assert (reps_per_launch("cpu"), reps_per_launch("cuda")) == (1, 4)
+    assert (reps_per_launch("cpu"), reps_per_launch("cuda")) == (1, 2)
     monkeypatch.setenv("PHYSGS_TI_REPS", "8")
     assert reps_per_launch("cpu") == reps_per_launch("cuda") == 8
     for bad in ("0", "-2", "2.5", "four", "33"):

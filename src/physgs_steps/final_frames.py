@@ -254,14 +254,18 @@ WRITER_THREAD_ENV = "PHYSGS_FINAL_WRITER_THREAD"
 
 def writer_thread_default(arch: str) -> bool:
     """Whether final_sim hands its frames to a writer thread: ``PHYSGS_FINAL_WRITER_THREAD``
-    (``1``/``0``; for A/B timings); unset or ``auto``: on CUDA only. On the CPU backend Taichi's
-    kernels run inside calls that keep the GIL and use every core: a thread cannot overlap
-    them (benchmarks/bench_final_h5.py --callback --final-sim, README "GPU")."""
+    (``1``/``0``; for A/B timings); unset or ``auto``: no, on either backend.  On the CPU
+    backend Taichi's kernels run inside calls that keep the GIL and use every core: a thread
+    cannot overlap them (benchmarks/bench_final_h5.py --callback --final-sim).  On one H100
+    (default bear, warm, `physgs bench pipeline`, 2026-11-27) the thread did not pay either:
+    final_sim 0.90-1.02 s with it, 0.59-0.92 s without (the thread's Python competes for the
+    GIL with the launches of the next frame's substeps, which is where a small scene's time
+    goes); README "GPU"."""
     import os
 
     v = os.environ.get(WRITER_THREAD_ENV, "auto").strip().lower()
     if v in ("", "auto"):
-        return arch == "cuda"
+        return False
     return v not in ("0", "false", "no", "off")
 
 

@@ -420,7 +420,7 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
         with h5py.File(tmp, "w") as f:
             writer = FinalWriter(f, rows, times, codec, to_source)
             # frames go to the writer and the figures through a FrameSink: with the writer
-            # thread (PHYSGS_FINAL_WRITER_THREAD; default: on CUDA) the main thread only copies a
+            # thread (PHYSGS_FINAL_WRITER_THREAD; default: off, final_frames.writer_thread_default) the main thread only copies a
             # frame off the device and queues it, and launches the next substeps while the thread
             # writes it; the wait for the device then releases the GIL (runner.gil_free_device_wait)
             sink = FrameSink(writer, figures, thread=threaded)

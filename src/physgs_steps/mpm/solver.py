@@ -883,7 +883,13 @@ def batches_enabled() -> bool:
     return os.environ.get("PHYSGS_TI_GRAPH", "1") != "0"
 
 
-DEFAULT_REPS = {"cpu": 1, "cuda": 4}  # reps_per_launch's default per arch
+# reps_per_launch's default per arch.  CUDA 2, not 4: on one H100 (2026-11-27, the pipeline's
+# bear, 5,554 particles, bench_substep_launch.py --reps) R = 1 / 2 / 4 took 0.118 / 0.075 /
+# 0.068 ms a substep (host 0.107 / 0.067 / 0.047 ms) but the first call (compilation) 0 / 10.9 /
+# 22.5 s; the warm default bear ran 3.73-4.03 s with R = 2 and 3.84-4.51 s with R = 4, and the
+# pipeline from an empty kernel cache 28.4 s with R = 2 (forward_sim 14 s) against about 57 s
+# with R = 4 (forward_sim 38 s)
+DEFAULT_REPS = {"cpu": 1, "cuda": 2}
 REPS_MAX = 32
 
 
