@@ -430,3 +430,40 @@ def test_block_dim_knob_reaches_taichi():
                              timeout=120, check=True).stdout
         got.append(int(out.split("BD")[-1]))
     assert got[0] == 64 and got[1] != 64
+
+
+def test_g2p_split_gives_bitwise_the_same_state(monkeypatch):
+    """PHYSGS_TI_G2P_SPLIT=1 (the constitutive update in a loop after G2P, kernels.Spec.g2p_split)
+    gives the state of the one-loop G2P up to rounding (the same operations; the compiler
+    contracts multiply-adds across the trial F differently when it is stored: 3e-7 in x and
+    1e-5 in F after 120 substeps here): a jelly and a plasticine block (return map, two
+    material combinations) falling onto each other and the ground, CPU; each mode is
+    reproducible bit for bit; an unknown value is an error naming the variable."""
+    from physgs_steps.errors import ConfigError
+    from physgs_steps.mpm.material import preset
+    from physgs_steps.mpm.solver import g2p_split_enabled
+
+    xa, va = block([0.3, 0.3, 0.1], [0.5, 0.5, 0.25], 1 / 48, seed=1)
+    xb, vb = block([0.35, 0.35, 0.3], [0.55, 0.5, 0.42], 1 / 48, seed=2)
+    x, vol = np.concatenate([xa, xb]), np.concatenate([va, vb])
+    mat = np.r_[np.zeros(len(xa), int), np.ones(len(xb), int)]
+    states = []
+    for flag in ("0", "1", "1"):
+        monkeypatch.setenv("PHYSGS_TI_G2P_SPLIT", flag)
+        # coarsened P2G: a reproducible summation order on the CPU (the per-thread grids' is not)
+        s = MPMSolver([JELLY, preset("plasticine")], n_grid=24, backend="cpu", p2g="coarsened")
+        s.set_particles(x, vol, mat, velocity=np.tile([0.0, 0.0, -1.0], (len(x), 1)))
+        s.substeps(120, 4e-4)
+        states.append(s.get_state())
+    for k, tol in (("x", 3e-6), ("v", 1e-4), ("C", 3e-3), ("F", 1e-4), ("ep", 0.0)):  # 10x what was seen
+        assert np.abs(states[0][k] - states[1][k]).max() <= tol, k
+        assert np.array_equal(states[1][k], states[2][k]), k
+    assert np.abs(states[0]["F"] - np.eye(3)).max() > 1e-2  # it deformed
+    assert np.abs(states[0]["x"] - x).max() > 0.02  # and fell
+    monkeypatch.setenv("PHYSGS_TI_G2P_SPLIT", "auto")
+    assert (g2p_split_enabled("cpu", 10**6), g2p_split_enabled("cuda", 10**6), g2p_split_enabled("cuda", 5000)) == \
+        (False, True, False)
+    monkeypatch.setenv("PHYSGS_TI_G2P_SPLIT", "yes")
+    with pytest.raises(ConfigError, match="PHYSGS_TI_G2P_SPLIT"):
+        g2p_split_enabled("cuda", 10**6)
+
