@@ -106,7 +106,6 @@ class Spec(NamedTuple):
     p2g: str = "atomic"  # atomic: one add per particle and node; coarsened: one per run of equal bases (p2g_sorted.py)
     run: int = 0         # coarsened P2G on one grid: particles per thread; P2G.CELL: per sorted cell; 0: unused
     split: int = 1       # coarsened P2G with `run` particles per thread: threads per run (P2G.SPLITS), each its share of the 27 nodes
-    g2p_split: bool = False  # G2P as two loops: the transfer (x, v, C; F_trial into F), then the constitutive update (F, tau, ep)
 
 
 @ti.func
@@ -396,7 +395,6 @@ def build(spec: Spec) -> SimpleNamespace:
     coarsened = spec.p2g == "coarsened"
     run = spec.run
     split = spec.split
-    g2p_split = spec.g2p_split
     if split != 1 and not (coarsened and not private_grid and run > 0):
         raise ValueError(f"Spec.split {split} needs coarsened P2G with run > 0 on one grid")
     runfl = P2G.make_flush(private_grid, split)
@@ -536,24 +534,6 @@ def build(spec: Spec) -> SimpleNamespace:
                     for j in range(box[0, 1], box[0, 4]):
                         acc_s += gpart[i * G + j, b, q]
                     gpart[G * G + i, b, q] = acc_s
-
-    @ti.func
-    def _constitutive(p, m, F_trial, F: ti.template(), tau: ti.template(), ep: ti.template(), mparams: ti.template(),
-                      mcombo: ti.template()):
-        """Particle p of material m: the return map of its trial F, its new F, the Kirchhoff stress
-        tau of it (P2G's next input) and the fracture strain ep, written to F, tau and ep."""
-        q = _qrow(mparams, m)
-        cid = 0
-        if ti.static(n_combo > 1):
-            cid = mcombo[m]
-        ep_p = 0.0
-        if ti.static(any_fracture):
-            ep_p = ep[p]
-        F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
-        F[p] = F_new
-        tau[p] = tau_new
-        if ti.static(any_fracture):
-            ep[p] = ep_p
 
     @ti.func
     def _is_rigid(m, mcombo: ti.template()):
@@ -1137,19 +1117,18 @@ def build(spec: Spec) -> SimpleNamespace:
                 C[p] = new_C
                 x[p] = x_new
                 if rigid == 0:  # a rigid particle's F and tau are set by rigid.py's scatter after this kernel
-                    if ti.static(g2p_split):
-                        F[p] = F_trial  # the update below, in its own loop
-                    else:
-                        _constitutive(p, m, F_trial, F, tau, ep, mparams, mcombo)
-            if ti.static(g2p_split):
-                # the constitutive update in a loop of its own (Spec.g2p_split): the same
-                # operations as inline (rounding may differ where the compiler contracted
-                # multiply-adds across the trial F), in two smaller kernels (fewer registers a
-                # thread, more threads in flight on a GPU)
-                for p in range(P):
-                    m = mat[p]
-                    if _is_rigid(m, mcombo) == 0:
-                        _constitutive(p, m, F[p], F, tau, ep, mparams, mcombo)
+                    q = _qrow(mparams, m)
+                    cid = 0
+                    if ti.static(n_combo > 1):
+                        cid = mcombo[m]
+                    ep_p = 0.0
+                    if ti.static(any_fracture):
+                        ep_p = ep[p]
+                    F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
+                    F[p] = F_new
+                    tau[p] = tau_new
+                    if ti.static(any_fracture):
+                        ep[p] = ep_p
 
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1, act_bits: I1,

@@ -238,8 +238,7 @@ class MPMSolver:
         if run == P2G.CELL and not self._sorting:
             run = P2G.RUN_LENGTH  # cells need the device sort's ranges
         spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid, p2g=self.p2g,
-                      run=run, split=self.split if run > 0 else 1,
-                      g2p_split=g2p_split_enabled(self.arch, self.n_particles))
+                      run=run, split=self.split if run > 0 else 1)
         self._k = K.build(spec)
         self._launch_substep = Launcher(self._k.substep)  # backend.Launcher: no per-call argument processing
         self._batches = None  # substeps(): ti.graph batches of the substep kernel (_Batches), built on first use
@@ -876,26 +875,6 @@ def _ndarray_from(a: np.ndarray, dtype) -> "ti.Ndarray":
     arr = ti.ndarray(dtype, a.shape[: a.ndim - elem])
     arr.from_numpy(a)
     return arr
-
-
-G2P_SPLIT_MIN_PARTICLES = 200_000  # auto: the split update from this many particles on CUDA (P2G.AUTO_MIN_PARTICLES' scale)
-
-
-def g2p_split_enabled(arch: str, n_particles: int) -> bool:
-    """Whether the substep kernel runs the constitutive update in a loop after G2P
-    (kernels.Spec.g2p_split): ``PHYSGS_TI_G2P_SPLIT`` 1 / 0, else (unset or ``auto``) on CUDA
-    from :data:`G2P_SPLIT_MIN_PARTICLES` particles.  The same state either way up to rounding
-    (the same operations; the compiler contracts multiply-adds across the stored trial F
-    differently: tests/test_mpm_solver.py); on a GPU the two loops need
-    fewer registers a thread than the one (G2P took 168 registers a thread on an H100, which
-    allowed 18.75 % occupancy: Nsight Compute, 10^6 particles, 2026-11-27), at the cost of one
-    more launch a substep and a write and read of F."""
-    raw = os.environ.get("PHYSGS_TI_G2P_SPLIT", "auto").strip().lower()
-    if raw in ("", "auto"):
-        return arch == "cuda" and n_particles >= G2P_SPLIT_MIN_PARTICLES
-    if raw in ("1", "0"):
-        return raw == "1"
-    raise ConfigError("PHYSGS_TI_G2P_SPLIT", f"must be 0, 1 or auto, got {raw!r}", source="the environment")
 
 
 def batches_enabled() -> bool:
