@@ -389,6 +389,7 @@ class FinalFrames:
         import h5py
 
         self.path = Path(path)
+        self._b0, self._bx, self._bf = None, None, None  # the block of rows read last (_block)
         if not self.path.is_file():
             raise InputError(self.path, "frames file not found")
         try:
@@ -449,7 +450,7 @@ class FinalFrames:
         worth of rows, at least 1), so a reader going forward through the frames (the render
         stage) makes one HDF5 read per block instead of two per frame (about 1.4 ms a frame of
         4.5k particles on the GPU machine's host, mostly h5py's per-call work)."""
-        b0 = getattr(self, "_b0", None)
+        b0 = self._b0
         if b0 is None or not b0 <= r < b0 + len(self._bx):
             n = max(1, min(self.rows - r, READ_BLOCK_BYTES // max(1, self.m * (3 * 4 + 9 * 2))))
             self._bx = np.asarray(self.h5["x"][r:r + n], dtype=np.float32)
