@@ -1,23 +1,18 @@
 """final.h5 layouts: bytes, write time and one streaming read, on real simulated frames;
-final_sim's per-frame host work (writer + physical figures), inline against the writer thread.
+final_sim's per-frame host work (writer + physical figures).
 
     python benchmarks/bench_final_h5.py results/bear/sim/<sim_id>/<step>/final.h5 [--repeat 3]
     python benchmarks/bench_final_h5.py --callback [--particles 5000 60000] [--frames 150]
-                                        [--substep-ms 6] [--final-sim 5000] [--backend cpu]
+                                        [--final-sim 5000] [--backend cpu]
 
-``--callback``: synthetic frames (a drifting, deforming block) through ``FrameSink`` at each
-particle count, once inline (``PHYSGS_FINAL_WRITER_THREAD=0``) and once with the writer thread,
-with the main thread between frames doing ``--substep-ms`` of stand-in substep work of three
-kinds: ``python`` (a Python loop: Taichi's launch overhead), ``gil-wait`` (a C call that waits
-holding the GIL, as Taichi's device synchronisation does), ``sleep`` (a wait that releases the
-GIL: final_sim's wait for the GPU through ``runner.gil_free_device_wait``).
-Per frame it prints the callback ms (the main thread's time handing the frame over, waiting
-for a full queue and, spread over the frames, the final drain: what ``stats.write_seconds``
-counts), the writer's busy ms (the work itself, wherever it ran) and the wall ms (substep
-stand-in + callback: the overlap shows as wall < substep + busy). ``--final-sim N``: then the
-final_sim stage end to end on a tiny scene of N stored particles (two blocks, ``--sim-frames``
-frames on ``--backend``): inline, threaded and (CUDA) threaded without the GIL-free device
-wait, ``--rounds`` alternating rounds in one process after a run that compiles the kernels.
+``--callback``: synthetic frames (a drifting, deforming block) at each particle count, handed
+to a ``FinalWriter`` and a ``PhysicalFigures`` as final_sim's frame callback does (the figures
+take F - I from the writer); prints ms per frame in the writer, in the figures and both
+(best of ``--repeat``). ``--final-sim N``: then the final_sim stage end to end on a tiny scene
+of N stored particles (two blocks, ``--sim-frames`` frames on ``--backend``), ``--rounds``
+runs in one process after a run that compiles the kernels; prints the stage's seconds, its
+substeps, ``stats.write_seconds`` (the frame callbacks: device copy, writer and figures) and
+``stats.writer_busy_seconds`` (writer and figures alone).
 
 Reads the frames of a final.h5 (format physgs-final/2, written by final_sim) and writes them
 again in each layout, one frame per chunk as the renderer reads them:
@@ -36,8 +31,6 @@ checked in tests/test_carrier.py.)
 from __future__ import annotations
 
 import argparse
-import ctypes
-import os
 import tempfile
 import time
 from pathlib import Path
@@ -84,27 +77,9 @@ def read(path: Path, kind: str) -> float:
     return time.perf_counter() - t0
 
 
-def _stand_in(kind: str, ms: float) -> None:
-    """ms of the main thread's substep work between two frames (module docstring)."""
-    if ms <= 0:
-        return
-    if kind == "sleep":
-        time.sleep(ms / 1e3)
-    elif kind == "gil-wait":
-        _LIBC.usleep(int(ms * 1e3))   # ctypes.PyDLL: the call keeps the GIL
-    else:
-        end = time.perf_counter() + ms / 1e3
-        n = 0
-        while time.perf_counter() < end:
-            n += 1
-
-
-_LIBC = ctypes.PyDLL(None)
-
-
-def callback_bench(m: int, frames: int, substep_ms: float, kind: str, thread: bool) -> dict:
-    """One pass of ``frames`` synthetic frames of m particles through FrameSink; ms per frame."""
-    from physgs_steps.final_frames import FinalWriter, FrameSink
+def callback_bench(m: int, frames: int) -> dict:
+    """``frames`` synthetic frames of m particles through the writer and the figures; ms per frame."""
+    from physgs_steps.final_frames import FinalWriter
     from physgs_steps.physical import PhysicalFigures
 
     rng = np.random.default_rng(0)
@@ -112,36 +87,24 @@ def callback_bench(m: int, frames: int, substep_ms: float, kind: str, thread: bo
     v = rng.normal(0.0, 0.002, (m, 3)).astype(np.float32)
     A = rng.normal(0.0, 0.01, (m, 3, 3)).astype(np.float32)
     eye = np.eye(3, dtype=np.float32)
+    t_w = t_f = 0.0
     with tempfile.TemporaryDirectory() as d:
         with h5py.File(Path(d) / "final.h5", "w") as h:
             writer = FinalWriter(h, np.arange(m), np.arange(frames) / 30.0)
             figures = PhysicalFigures(frames)
-            sink = FrameSink(writer, figures, thread=thread)
-            cb = sub = 0.0
-            t_all = time.perf_counter()
-            try:
-                for k in range(frames):
-                    if k:
-                        t0 = time.perf_counter()
-                        _stand_in(kind, substep_ms)
-                        sub += time.perf_counter() - t0
-                    xs, Fs = x0 + np.float32(k) * v, eye + np.float32(k / frames) * A   # fresh arrays, as gather_rows
-                    t0 = time.perf_counter()
-                    sink.frame(k, xs, Fs)
-                    cb += time.perf_counter() - t0
+            for k in range(frames):
+                xs, Fs = x0 + np.float32(k) * v, eye + np.float32(k / frames) * A   # fresh arrays, as gather_rows
                 t0 = time.perf_counter()
-                sink.close()
-                cb += time.perf_counter() - t0
-            finally:
-                sink.abort()
-            wall = time.perf_counter() - t_all
+                dev = writer.frame(k, xs, Fs)
+                t1 = time.perf_counter()
+                figures.add(k, xs, Fs, f_minus_i=dev)
+                t_w, t_f = t_w + t1 - t0, t_f + time.perf_counter() - t1
             writer.finish({"physical": figures.result(np.arange(frames) / 30.0)})
-    return {"callback": cb / frames * 1e3, "busy": sink.busy_seconds / frames * 1e3,
-            "substep": sub / frames * 1e3, "wall": wall / frames * 1e3}
+    return {"writer": t_w / frames * 1e3, "figures": t_f / frames * 1e3, "total": (t_w + t_f) / frames * 1e3}
 
 
 def final_sim_bench(n: int, backend: str, frames: int = 30, rounds: int = 2) -> None:
-    """final_sim end to end on two blocks of n/2 stored particles each, inline and threaded."""
+    """final_sim end to end on two blocks of n/2 stored particles each, ``rounds`` runs after a warm-up."""
     import copy
     import json
     import logging
@@ -180,47 +143,36 @@ def final_sim_bench(n: int, backend: str, frames: int = 30, rounds: int = 2) -> 
         inputs = {"particles": str(d / "particles.h5"), "params": str(d / "params.json")}
         print(f"\nfinal_sim end to end: {int((~fl).sum())} stored of {len(x)} particles, {frames} frames, "
               f"grid 32^3, backend {backend}")
-        print(f"{'run':<26} {'stage s':>8} {'substeps s':>10} {'write s':>8} {'writer busy s':>13}")
-        # thread without the GIL-free device wait (PHYSGS_GIL_FREE_WAIT=0) only differs on CUDA
-        modes = [("inline", "0", "1"), ("thread", "1", "1")] + ([("thread, no GIL-free wait", "1", "0")]
-                                                                if backend == "cuda" else [])
-        for name, thread, gil_free in [("warm-up", "0", "1")] + modes * rounds:
-            os.environ["PHYSGS_FINAL_WRITER_THREAD"], os.environ["PHYSGS_GIL_FREE_WAIT"] = thread, gil_free
+        print(f"{'run':<8} {'stage s':>8} {'substeps s':>10} {'write s':>8} {'writer busy s':>13}")
+        for name in ["warm-up"] + [f"run {i + 1}" for i in range(rounds)]:
             out = d / "final.h5"
             t0 = time.perf_counter()
             simulate.run_final(inputs, {"frames": str(out)}, cfg, log)
             wall = time.perf_counter() - t0
             with h5py.File(out) as f:
                 st = json.loads(f.attrs["stats"])
-            print(f"{name:<26} {wall:8.2f} {st['simulate_seconds']:10.2f} {st['write_seconds']:8.3f} "
-                  f"{st.get('writer_busy_seconds', float('nan')):13.3f}")
+            print(f"{name:<8} {wall:8.2f} {st['simulate_seconds']:10.2f} {st['write_seconds']:8.3f} "
+                  f"{st['writer_busy_seconds']:13.3f}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("final_h5", nargs="?")
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--callback", action="store_true", help="final_sim's per-frame host work, inline vs thread")
+    ap.add_argument("--callback", action="store_true", help="final_sim's per-frame host work (writer + figures)")
     ap.add_argument("--particles", type=int, nargs="*", default=[5000, 60000])
     ap.add_argument("--frames", type=int, default=150)
-    ap.add_argument("--substep-ms", type=float, default=6.0,
-                    help="stand-in substep work per frame (H100, bear: 0.87 s / 150 frames)")
-    ap.add_argument("--kinds", nargs="+", default=["python", "gil-wait", "sleep"])
     ap.add_argument("--final-sim", type=int, default=0, metavar="N", help="then final_sim end to end, N stored particles")
     ap.add_argument("--backend", default="cpu")
     ap.add_argument("--sim-frames", type=int, default=30, help="frames of the --final-sim runs")
-    ap.add_argument("--rounds", type=int, default=2, help="alternating rounds of the --final-sim modes")
+    ap.add_argument("--rounds", type=int, default=2, help="runs of final_sim after the warm-up run")
     args = ap.parse_args()
     if args.callback:
-        print(f"per frame, ms ({args.frames} frames; best of --repeat {args.repeat} by wall)")
-        print(f"{'particles':>9} {'stand-in':<9} {'mode':<7} {'callback':>9} {'busy':>7} {'substep':>8} {'wall':>7}")
+        print(f"per frame, ms ({args.frames} frames; best of --repeat {args.repeat} by total)")
+        print(f"{'particles':>9} {'writer':>7} {'figures':>8} {'total':>7}")
         for m in args.particles:
-            for kind in args.kinds:
-                for thread in (False, True):
-                    r = min((callback_bench(m, args.frames, args.substep_ms, kind, thread) for _ in range(args.repeat)),
-                            key=lambda r: r["wall"])
-                    print(f"{m:9d} {kind:<9} {'thread' if thread else 'inline':<7} {r['callback']:9.2f} "
-                          f"{r['busy']:7.2f} {r['substep']:8.2f} {r['wall']:7.2f}")
+            r = min((callback_bench(m, args.frames) for _ in range(args.repeat)), key=lambda r: r["total"])
+            print(f"{m:9d} {r['writer']:7.2f} {r['figures']:8.2f} {r['total']:7.2f}")
         if args.final_sim:
             final_sim_bench(args.final_sim, args.backend, args.sim_frames, args.rounds)
         return

@@ -11,8 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from physgs_steps.carrier import build_carrier, load_carrier, particle_spacing, representatives, write_carrier
 from physgs_steps.errors import InputError, SimulationError
-from physgs_steps.final_frames import (F16_BOUND_ABS, F16_BOUND_REL, F16_MAX, FinalFrames, FinalWriter, FrameSink,
-                                       to_float16)
+from physgs_steps.final_frames import F16_BOUND_ABS, F16_BOUND_REL, F16_MAX, FinalFrames, FinalWriter, to_float16
 from physgs_steps.physical import PhysicalFigures, det3
 from physgs_steps.render.deform import CarrierMap
 
@@ -296,25 +295,22 @@ def _frames(m, t, rng):
     return x, F
 
 
-def _write(cls, path, x, F, held, truncate=None, to_source=None, thread=None, codec=None):
+def _write(cls, path, x, F, held, truncate=None, to_source=None, figures=False, codec=None):
+    """Frames through a writer; with ``figures`` as final_sim's frame callbacks hand them over
+    (the figures take F - I from the writer)."""
     t, m = x.shape[:2]
     with h5py.File(path, "w") as h:
         w = cls(h, np.arange(m) * 3, np.arange(t) / 30.0, codec, to_source)
         fig = PhysicalFigures(t)
-        sink = FrameSink(w, fig, thread=bool(thread)) if thread is not None else None
-        try:
-            for k in range(t):
-                if sink is not None:
-                    sink.hold(k) if k in held else sink.frame(k, x[k], F[k])
-                elif k in held:
-                    w.hold(k)
-                else:
-                    w.frame(k, x[k], F[k])
-            if sink is not None:
-                sink.close()
-        finally:
-            if sink is not None:
-                sink.abort()
+        for k in range(t):
+            if k in held:
+                w.hold(k)
+                if figures:
+                    fig.repeat(k)
+            else:
+                dev = w.frame(k, x[k], F[k])
+                if figures:
+                    fig.add(k, x[k], F[k], f_minus_i=dev)
         if truncate:
             w.truncate(truncate)
         w.finish({"stats": {"rows": w.rows}})
@@ -325,8 +321,8 @@ def _write(cls, path, x, F, held, truncate=None, to_source=None, thread=None, co
                                                               ((10, 11), 10, True, "none"), ((1,), None, False, "gzip")])
 def test_final_writer_bit_for_bit_as_before(tmp_path, held, truncate, to_source, codec):
     """The writer (preallocated rows, H5Dwrite_chunk or with a codec h5py's write, to_float16,
-    one-sum checks), inline and through the writer thread, writes the datasets and attributes
-    of the writer it replaced."""
+    one-sum checks), fed as final_sim feeds it (the figures after each frame), writes the
+    datasets and attributes of the writer it replaced."""
     from physgs_steps.final_frames import codec_options
 
     rng = np.random.default_rng(11)
@@ -334,17 +330,16 @@ def test_final_writer_bit_for_bit_as_before(tmp_path, held, truncate, to_source,
     to_src = (lambda p: p * 2.0 + np.array([0.1, -3.0, 7.0])) if to_source else None
     codec = codec_options(codec)
     ref = _write(_ReferenceWriter, tmp_path / "ref.h5", x, F, held, truncate, to_src, codec=codec)
-    for name, thread in (("inline", False), ("thread", True)):
-        rows = _write(FinalWriter, tmp_path / f"{name}.h5", x, F, held, truncate, to_src, thread, codec)
-        assert rows == ref
-        with h5py.File(tmp_path / "ref.h5") as a, h5py.File(tmp_path / f"{name}.h5") as b:
-            assert sorted(a) == sorted(b) and dict(a.attrs) == dict(b.attrs)
-            for k in a:
-                assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype and a[k].chunks == b[k].chunks, k
-                assert a[k].maxshape == b[k].maxshape and a[k].compression == b[k].compression, k
-                assert a[k][()].tobytes() == b[k][()].tobytes(), k
-            assert np.isnan(b["x"][5 - sum(h < 5 for h in held), 3]).all()   # the NaN row is stored as before
-    with FinalFrames(tmp_path / "thread.h5") as fr:
+    rows = _write(FinalWriter, tmp_path / "new.h5", x, F, held, truncate, to_src, True, codec)
+    assert rows == ref
+    with h5py.File(tmp_path / "ref.h5") as a, h5py.File(tmp_path / "new.h5") as b:
+        assert sorted(a) == sorted(b) and dict(a.attrs) == dict(b.attrs)
+        for k in a:
+            assert a[k].shape == b[k].shape and a[k].dtype == b[k].dtype and a[k].chunks == b[k].chunks, k
+            assert a[k].maxshape == b[k].maxshape and a[k].compression == b[k].compression, k
+            assert a[k][()].tobytes() == b[k][()].tobytes(), k
+        assert np.isnan(b["x"][5 - sum(h < 5 for h in held), 3]).all()   # the NaN row is stored as before
+    with FinalFrames(tmp_path / "new.h5") as fr:
         assert fr.motion_box[0] == ("source" if to_source else "sim")
 
 
@@ -366,9 +361,10 @@ def test_final_writer_allocates_only_written_rows(tmp_path):
         assert fr.rows == 3 and fr.frame_row.tolist() == [0, 1] + [2] * (t - 2)
 
 
-def test_writer_thread_error_fails_cleanly(tmp_path):
-    """The float16 overflow raised in the writer thread comes back, the same exception with
-    its message, at the next hand-off or at close(); frames after it are not written."""
+def test_final_writer_overflow_names_the_frame_and_stores_nothing_of_it(tmp_path):
+    """The float16 overflow of F - I at frame 2 raises the SimulationError naming the frame, the
+    particle count and float16, and leaves frame 2 unwritten (final_sim then fails without a
+    final.h5: tests/test_mpm_stages.py)."""
     m, t = 100, 8
     rng = np.random.default_rng(4)
     x = rng.random((t, m, 3)).astype(np.float32)
@@ -376,23 +372,11 @@ def test_writer_thread_error_fails_cleanly(tmp_path):
     F[2, 7] *= 1e6
     with h5py.File(tmp_path / "f.h5", "w") as h:
         w = FinalWriter(h, np.arange(m), np.arange(t) / 30.0)
-        sink = FrameSink(w, PhysicalFigures(t), thread=True, depth=1)
-        try:
-            with pytest.raises(SimulationError, match=r"frame 2: 1 particles have \|F - I\| >= 65504.*float16"):
-                for k in range(t):
-                    sink.frame(k, x[k], F[k])
-                sink.close()
-        finally:
-            sink.abort()
+        w.frame(0, x[0], F[0])
+        w.frame(1, x[1], F[1])
+        with pytest.raises(SimulationError, match=r"frame 2: 1 particles have \|F - I\| >= 65504.*float16"):
+            w.frame(2, x[2], F[2])
         assert w.rows == 2 and (w.frame_row[2:] == -1).all()
-        with pytest.raises(SimulationError, match="frame 2"):   # raised again, never swallowed
-            sink.close()
-    inline = FrameSink(FinalWriter(h5py.File(tmp_path / "g.h5", "w"), np.arange(m), np.arange(t) / 30.0),
-                       PhysicalFigures(t), thread=False)
-    inline.frame(0, x[0], F[0])
-    with pytest.raises(SimulationError, match="frame 2"):
-        inline.frame(2, x[2], F[2])
-    inline.writer.h5.close()
 
 
 def _result_bits(r):

@@ -394,7 +394,7 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
 
     inputs: ``particles``, ``params``, optional ``transform`` (transform.json: the motion box
     the render camera is fitted to is then recorded in the capture's frame)."""
-    from .final_frames import FinalWriter, FrameSink, codec_options, writer_thread_default
+    from .final_frames import FinalWriter, codec_options
     from .physical import PhysicalFigures
 
     parts, params, solver, stepper, th, rest = _prepare(inputs, cfg, log)
@@ -412,37 +412,30 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
         to_source = load_transform(inputs["transform"]).to_source
     import time
 
-    from .mpm.runner import gil_free_device_wait
-
-    threaded = writer_thread_default(solver.arch)
-    device_wait = gil_free_device_wait(solver.arch) if threaded else None
     with atomic_path(outputs["frames"]) as tmp:
         with h5py.File(tmp, "w") as f:
             writer = FinalWriter(f, rows, times, codec, to_source)
-            # frames go to the writer and the figures through a FrameSink: with the writer
-            # thread (PHYSGS_FINAL_WRITER_THREAD; default: off, final_frames.writer_thread_default) the main thread only copies a
-            # frame off the device and queues it, and launches the next substeps while the thread
-            # writes it; the wait for the device then releases the GIL (runner.gil_free_device_wait)
-            sink = FrameSink(writer, figures, thread=threaded)
-            try:
-                def on_frame(k: int, t: float, dt_next: float) -> None:
-                    xs, Fs = solver.gather_rows(rows)   # fresh host arrays: safe to hand over
-                    sink.frame(k, xs, Fs)
+            busy = 0.0   # seconds in the writer and the figures (within the frame callbacks)
 
-                def on_hold(k: int, t: float) -> None:
-                    sink.hold(k)
+            def on_frame(k: int, t: float, dt_next: float) -> None:
+                nonlocal busy
+                xs, Fs = solver.gather_rows(rows)
+                t0 = time.perf_counter()
+                dev = writer.frame(k, xs, Fs)   # F - I when F is finite: the figures reuse it
+                figures.add(k, xs, Fs, f_minus_i=dev)
+                busy += time.perf_counter() - t0
 
-                log.info("final run: %d frames at %g fps, %d particles stored (of %d; they carry the %s gaussians), "
-                         "writing in %s", n_frames, stepper.fps, len(rows), solver.n_particles, "visible",
-                         ("a writer thread" + (", GIL-free device wait" if device_wait else "")) if threaded
-                         else "the main thread")
-                res = run_frames(solver, n_frames, stepper, th, on_frame, log, stage="final_sim", rest=rest,
-                                 on_hold=on_hold, device_wait=device_wait)
-                t_drain = time.perf_counter()
-                sink.close()   # the frames still queued; the thread's error, if any, is raised here
-                t_drain = time.perf_counter() - t_drain
-            finally:
-                sink.abort()
+            def on_hold(k: int, t: float) -> None:
+                nonlocal busy
+                t0 = time.perf_counter()
+                writer.hold(k)
+                figures.repeat(k)
+                busy += time.perf_counter() - t0
+
+            log.info("final run: %d frames at %g fps, %d particles stored (of %d; they carry the %s gaussians)",
+                     n_frames, stepper.fps, len(rows), solver.n_particles, "visible")
+            res = run_frames(solver, n_frames, stepper, th, on_frame, log, stage="final_sim", rest=rest,
+                             on_hold=on_hold)
             if not res.stable:
                 if cfg["sim"].get("on_unstable", "error") != "keep" or res.frames_done < 1:
                     raise SimulationError(res.message)
@@ -451,25 +444,20 @@ def run_final(inputs: dict, outputs: dict, cfg: dict, log: logging.Logger) -> di
                 times = times[: res.frames_done]
                 log.warning("final_sim unstable after frame %d: keeping frames 0..%d (sim.on_unstable: keep)",
                             res.last_stable_frame, res.last_stable_frame)
-            # write_seconds: the stage's time on frames that the substeps did not overlap: the
-            # frame callbacks on the main thread (the device -> host copy, and the writing when
-            # inline; the hand-off and any wait for a full queue with the thread) plus the wait
-            # for the thread after the last frame. writer_busy_seconds: the writing and
-            # figures themselves, wherever they ran (with the thread, overlapped with substeps).
-            write_s = res.callback_seconds + t_drain
+            # write_seconds: the stage's time on frames outside the substeps (the frame callbacks:
+            # the device -> host copy, the writer and the figures); writer_busy_seconds: the
+            # writer and the figures alone
+            write_s = res.callback_seconds
             stats = _stats(res, solver, {"n_frames": n_frames, "n_stored": len(rows), "rows_stored": writer.rows,
                                          "frames_written": res.frames_done,
                                          "write_seconds": round(write_s, 3),
-                                         "writer_thread": threaded, "gil_free_wait": device_wait is not None,
-                                         "writer_busy_seconds": round(sink.busy_seconds, 3),
-                                         "writer_wait_seconds": round(sink.wait_seconds, 3)})
+                                         "writer_busy_seconds": round(busy, 3)})
             writer.finish({"stats": stats, "params": params, "sim_config": _sim_config(cfg, solver, stepper),
                            "physical": figures.result(times)})
     log.info("final_sim: %d frames%s (%d held at rest, %d rows stored), %d substeps in %.1f s (+%.1f s first substep, "
-             "%.2f s writing not overlapped: callbacks %.2f s + drain %.2f s; writer %s busy %.2f s) -> %s",
+             "%.2f s in the frame callbacks, of which writer and figures %.2f s) -> %s",
              res.frames_done, "" if res.stable else " (UNSTABLE, kept)", res.held_frames, writer.rows,
-             stats["substeps_total"], res.step_seconds, res.first_substep_seconds, write_s, res.callback_seconds,
-             t_drain, "thread" if threaded else "inline", sink.busy_seconds, outputs["frames"])
+             stats["substeps_total"], res.step_seconds, res.first_substep_seconds, write_s, busy, outputs["frames"])
     return {"stable": res.stable, "substeps_total": stats["substeps_total"], "simulate_seconds": stats["simulate_seconds"],
             "held_frames": res.held_frames, "particle_substeps_per_second": stats["particle_substeps_per_second"],
-            "timings": _timings(solver, res, log, write=round(write_s, 3), writer_busy=round(sink.busy_seconds, 3))}
+            "timings": _timings(solver, res, log, write=round(write_s, 3), writer_busy=round(busy, 3))}

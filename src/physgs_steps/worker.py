@@ -161,8 +161,8 @@ def _source_fingerprint() -> str:
 # the environment a worker is started with and keyed by: a run with other values gets its own
 # worker (the knobs below are read when a stage or the solver starts: A/B runs need their own)
 ENV_KEYS = ("PHYSGS_CACHE_DIR", "TORCH_EXTENSIONS_DIR", "CUDA_VISIBLE_DEVICES", "PYTHONPATH", "TI_ARCH",
-            "PHYSGS_FINAL_WRITER_THREAD", "PHYSGS_GIL_FREE_WAIT", "PHYSGS_TI_REPS", "PHYSGS_TI_GRAPH",
-            "PHYSGS_TI_FAST_LAUNCH", "PHYSGS_TI_BLOCK_DIM", "PHYSGS_TI_ADVANCED_OPT", "PHYSGS_PROFILE_DIR")
+            "PHYSGS_TI_REPS", "PHYSGS_TI_GRAPH", "PHYSGS_TI_FAST_LAUNCH", "PHYSGS_TI_BLOCK_DIM",
+            "PHYSGS_TI_ADVANCED_OPT", "PHYSGS_PROFILE_DIR")
 
 
 def worker_key() -> str:

@@ -77,13 +77,8 @@ class RunResult:
 def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thresholds,
                on_frame: Callable[[int, float, float], None], log: logging.Logger, *,
                keep_backup: bool = False, stage: str = "simulation", rest: RestPolicy | None = None,
-               on_hold: Callable[[int, float], None] | None = None,
-               device_wait: Callable[[], None] | None = None) -> RunResult:
-    """Simulate frames 1..n_frames-1 after reporting frame 0; see the module docstring.
-
-    ``device_wait``: called after each frame's substeps are launched, before the stability
-    read-back; final_sim passes :func:`gil_free_device_wait` with its writer thread, so that the
-    thread runs while the device works (Taichi's read-back waits holding the GIL)."""
+               on_hold: Callable[[int, float], None] | None = None) -> RunResult:
+    """Simulate frames 1..n_frames-1 after reporting frame 0; see the module docstring."""
     res = RunResult()
     tracker = RestTracker(rest, stepper.frame_dt) if rest is not None else None
     c_max = float(np.max(solver.wave_speeds()))
@@ -138,8 +133,6 @@ def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thres
             res.first_substep_seconds = _time.perf_counter() - t0
             t_start += res.first_substep_seconds
         solver.substeps(n_sub, plan.dt)  # batched launches (MPMSolver.substeps)
-        if device_wait is not None:
-            device_wait()
         solver.time = k * frame_dt
         res.substeps.append(plan.n)
         res.dts.append(plan.dt)
@@ -178,39 +171,6 @@ def run_frames(solver: MPMSolver, n_frames: int, stepper: TimeStepper, th: Thres
     if tracker is not None:
         res.rest = tracker.events
     return res
-
-
-GIL_FREE_WAIT_ENV = "PHYSGS_GIL_FREE_WAIT"
-
-
-def gil_free_device_wait(arch: str) -> Callable[[], None] | None:
-    """A wait for the device's launched work that releases the GIL, or None (not CUDA, no
-    libcuda, or ``PHYSGS_GIL_FREE_WAIT=0``).
-
-    Taichi's synchronisation (``ti.sync``, every read-back) waits for the device inside a call
-    that keeps the GIL, so no other Python thread runs while the GPU works. This calls the CUDA
-    driver's ``cuCtxSynchronize`` through ``ctypes.CDLL``, which drops the GIL for the call:
-    the caller's thread waits for its current context (the one Taichi made current there) and
-    other threads (final_sim's writer) run meanwhile; the read-back after it finds the device
-    idle. If another context is current (e.g. one torch made current later in a warm worker)
-    it returns at once and the read-back waits as before. Its return code is not checked: a
-    device fault is raised by Taichi's next call."""
-    import os
-
-    if arch != "cuda" or os.environ.get(GIL_FREE_WAIT_ENV, "1").strip().lower() in ("0", "false", "no", "off"):
-        return None
-    import ctypes
-
-    try:
-        fn = ctypes.CDLL("libcuda.so.1").cuCtxSynchronize
-    except (OSError, AttributeError):
-        return None
-    fn.restype, fn.argtypes = ctypes.c_int, []
-
-    def wait() -> None:
-        fn()
-
-    return wait
 
 
 def _fail(res: RunResult, fail: Failure, solver: MPMSolver, stepper: TimeStepper, plan: StepPlan, th: Thresholds,
