@@ -3,7 +3,8 @@
 and with those timers made no-ops (no host synchronisation inside a substep).
 
 PhysGaussian's code is not part of physgs: give the folder of its ``mpm_solver_warp``
-(``git clone https://github.com/XPandora/PhysGaussian``) and install ``warp-lang``.
+(``git clone https://github.com/XPandora/PhysGaussian``) and install ``warp-lang``: a release
+that still has ``warp.torch`` and builds a matrix from vectors (1.6.2 runs it; 1.19 does not).
 
     python benchmarks/bench_mpm_warp.py --physgaussian PhysGaussian/mpm_solver_warp --sizes 300000 1000000
 
