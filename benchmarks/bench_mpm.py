@@ -8,6 +8,7 @@ P2G, float atomics, gravity and slip walls), on the same particles in the same p
     python benchmarks/bench_mpm.py --arch cuda --sizes 300000 1000000 --warp-solver PhysGaussian/mpm_solver_warp
     python benchmarks/bench_mpm.py --arch cuda --sizes 1000000 --profile     # Taichi kernel profiler per pass
     python benchmarks/bench_mpm.py --arch cuda --sizes 300000 1000000 --p2g atomic coarsened coarsened:K=32
+    python benchmarks/bench_mpm.py --arch cuda --sizes 1000000 --windows 8 --p2g coarsened:N=16 coarsened:N=8
 
 P2G variants (``--p2g``, src/physgs_steps/mpm/p2g_sorted.py), each measured on its own solver
 from the same particles after the default solver: ``atomic`` (one float atomic per particle
@@ -226,7 +227,47 @@ def bench_variants(arch: str, x: np.ndarray, G: int, m, dt: float, variants: lis
     return rows
 
 
-def bench_arch(arch: str, sizes: list, seconds: float, variants: list | None = None, rounds: int = 3) -> list:
+def bench_windows(arch: str, x: np.ndarray, G: int, m, dt: float, variants: list, n_windows: int,
+                  window: int = 400) -> list:
+    """Rates of the P2G variants window by window: a fresh solver per variant from the same
+    particles, then ``n_windows`` windows of ``window`` substeps each.  The jelly box falls,
+    lands and bounces, so the windows show how a variant's rate follows the state (the stored
+    order holds while the box falls as a block and not once it wobbles).  Prints a line per
+    variant."""
+    import taichi as ti
+
+    from physgs_steps.mpm import Dynamics, MPMSolver
+
+    P = len(x)
+    calls = max(1, window // BATCH)
+    rows = []
+    for text in variants:
+        s = MPMSolver([m], n_grid=G, dynamics=Dynamics.free(), backend=arch, **parse_variant(text))
+        s.set_particles(x, np.full(P, 0.4 ** 3 / P), np.zeros(P, int))
+        for _ in range(10):  # compile / warm up: 40 substeps
+            s.substeps(BATCH, dt)
+        ti.sync()
+        rates = []
+        for _ in range(n_windows):
+            t0 = time.perf_counter()
+            for i in range(calls):
+                s.substeps(BATCH, dt)
+                if i % 5 == 4:
+                    ti.sync()
+            ti.sync()
+            rates.append(BATCH * calls * P / (time.perf_counter() - t0))
+        t_end = dt * BATCH * (10 + calls * n_windows)
+        print(f"windows {s.arch:5s} P={P:>8d} {text:24s} {BATCH * calls} substeps each, simulated time "
+              f"{dt * BATCH * 10:.2f}-{t_end:.2f} s: " + " ".join(f"{r:.3g}" for r in rates) +
+              f"  mean {np.mean(rates):.3g}", flush=True)
+        rows.append({"arch": s.arch, "particles": P, "n_grid": G, "variant": text, "window_substeps": BATCH * calls,
+                     "window_rates": rates, "rate": float(np.mean(rates)), "rate_mean": float(np.mean(rates))})
+        del s
+    return rows
+
+
+def bench_arch(arch: str, sizes: list, seconds: float, variants: list | None = None, rounds: int = 3,
+               windows: int = 0) -> list:
     from physgs_steps.mpm import Dynamics, Material, MPMSolver
 
     m = Material("fixed_corotated", "identity", E=1.0e5, nu=0.3, density=1000.0, name="jelly")
@@ -254,7 +295,9 @@ def bench_arch(arch: str, sizes: list, seconds: float, variants: list | None = N
               f"({row['ratio_vs_sorted']:.2f} vs sorted)", flush=True)
         out.append(row)
         del s, tb, tbs
-        if variants:
+        if variants and windows > 0:
+            out += bench_windows(arch, x, G, m, dt, variants, windows)
+        elif variants:
             out += bench_variants(arch, x, G, m, dt, variants, seconds, r_tbs, rounds)
     return out
 
@@ -311,6 +354,9 @@ def main() -> None:
                          ":grid=private|atomic (default: %(default)s; none: --p2g with no value)")
     ap.add_argument("--rounds", type=int, default=3,
                     help="interleaved rounds of the --p2g variants (each gets --seconds in all; best round counts)")
+    ap.add_argument("--windows", type=int, default=0, metavar="N",
+                    help="measure the --p2g variants in N windows of 400 substeps each from a fresh solver "
+                         "(the box falls, lands and bounces: rates as the state changes) instead of rounds")
     ap.add_argument("--emit-rows", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.profile:
@@ -319,7 +365,8 @@ def main() -> None:
         rows = []
         for arch in ["cpu"] + (["cuda"] if _cuda_available() else []):
             cmd = [sys.executable, __file__, "--arch", arch, "--seconds", str(a.seconds), "--sizes",
-                   *map(str, a.sizes), "--emit-rows", "--rounds", str(a.rounds), "--p2g", *a.p2g]
+                   *map(str, a.sizes), "--emit-rows", "--rounds", str(a.rounds), "--windows", str(a.windows),
+                   "--p2g", *a.p2g]
             r = subprocess.run(cmd, capture_output=True, text=True)
             for line in r.stdout.splitlines():
                 if line.startswith(ROWS):
@@ -331,7 +378,7 @@ def main() -> None:
         if "cuda" not in {r["arch"] for r in rows}:
             print("ti.cuda: not available on this machine")
     else:
-        rows = bench_arch(a.arch, a.sizes, a.seconds, a.p2g, a.rounds)
+        rows = bench_arch(a.arch, a.sizes, a.seconds, a.p2g, a.rounds, a.windows)
         if a.emit_rows:
             print(ROWS + json.dumps(rows))
             return

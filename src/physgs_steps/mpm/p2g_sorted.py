@@ -40,7 +40,16 @@ AUTO = {"cpu": "atomic", "cuda": "coarsened"}  # what ``auto`` picks per arch
 AUTO_MIN_PARTICLES = 200_000
 RUN_LENGTH = 16  # CUDA: particles per thread in coarsened P2G
 CELL = -1  # run_length value: one thread per stencil-base cell of the last sort (its range of slots)
-RESORT_EVERY = 16  # substeps between device re-sorts in coarsened mode
+# Substeps between device re-sorts in coarsened mode.  What spoils the order is relative motion
+# (a block that falls keeps its particles in order; one that bounces and wobbles does not), and
+# a spoilt order splits the runs (more atomics).  Measured on one H200 (2026-11-28, jelly cube
+# of bench_mpm.py dropping and bouncing, particle-substeps/s in windows of 400 substeps, the
+# falling window first, then the mean of all 8): 10^6 particles, every 16 substeps 1.48e9 then
+# 1.05-1.13e9 (mean 1.13e9), every 8 1.46e9 then 1.14-1.21e9 (1.22e9), every 4 1.33e9 then
+# 1.18-1.27e9 (1.24e9), every 2 1.19e9 mean; 300k: 0.84e9, 0.84e9, 0.88e9 and 0.61e9 means.
+# 8 loses 1 % while the order holds and gains 8 % once it does not (README "Issue 18, eighth
+# round").  A sort costs about 0.45 ms at 10^6 (mostly the scatter of every particle array).
+RESORT_EVERY = 8
 # CUDA: threads per run in coarsened P2G (SPLITS below).  Measured on one H200 (bench_mpm.py,
 # jelly, best of 3 interleaved rounds, median in brackets): 300k particles 8.83e8 (7.79e8)
 # particle-substeps/s with 1 thread per run, 9.91e8 (8.61e8) with 3, 9.94e8 (8.73e8) with 9;
