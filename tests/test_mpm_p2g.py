@@ -95,19 +95,6 @@ def test_device_sort_permutes_every_particle_array_consistently():
     assert np.allclose(gx, after["x"][rows])
 
 
-def test_resort_by_gather_is_the_same_permutation_as_by_scatter():
-    # per-thread grids: reproducible sums on the CPU (one grid with atomics is not, run to run)
-    a = _solver("coarsened", "private", resort_every=3)
-    b = _solver("coarsened", "private", resort_every=3)
-    b._sorter.gather = True
-    for _ in range(7):  # two re-sorts each
-        a.substep(2e-4)
-        b.substep(2e-4)
-    assert a.sort_generation == b.sort_generation >= 2 and b._sorter.src is not None
-    for name in ("x", "v", "C", "F", "tau", "_p_mass", "_mat", "_order"):
-        assert np.array_equal(getattr(a, name).to_numpy(), getattr(b, name).to_numpy()), name
-
-
 def test_backup_restored_across_a_resort():
     s = _solver("coarsened", run_length=5, resort_every=3)
     for _ in range(2):

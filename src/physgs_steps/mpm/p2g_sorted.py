@@ -272,45 +272,6 @@ def _scatter(dest: I1, key: I1, start: I1,
         order2[q] = order[p]
 
 
-@ti.kernel
-def _slots(dest: I1, key: I1, start: I1, src: I1):
-    """src[slot] = the particle that goes to that slot (the inverse of _scatter's map)."""
-    for p in range(key.shape[0]):
-        src[start[key[p]] + dest[p]] = p
-
-
-@ti.kernel
-def _gather(src: I1,
-            x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1, act_bits: I1,
-            order: I1, x2: V1, v2: V1, C2: M1, F2: M1, tau2: M1, ep2: S1, p_vol2: S1, p_face2: S1, p_mass2: S1,
-            mat2: I1, act_bits2: I1, order2: I1):
-    """Slot q takes particle src[q]: the same permutation as _scatter, as reads from the old
-    order and writes in slot order (consecutive threads write consecutive slots)."""
-    for q in range(x.shape[0]):
-        p = src[q]
-        x2[q] = x[p]
-        v2[q] = v[p]
-        C2[q] = C[p]
-        F2[q] = F[p]
-        tau2[q] = tau[p]
-        ep2[q] = ep[p]
-        p_vol2[q] = p_vol[p]
-        p_face2[q] = p_face[p]
-        p_mass2[q] = p_mass[p]
-        mat2[q] = mat[p]
-        act_bits2[q] = act_bits[p]
-        order2[q] = order[p]
-
-
-def gather_default() -> bool:
-    """How the re-sort moves the particle arrays: ``PHYSGS_SORT_GATHER=1`` slots first, then
-    one gather in slot order (:func:`_gather`); unset or 0: one scatter (:func:`_scatter`).
-    The same permutation either way (bench_mpm.py compares their rates)."""
-    import os
-
-    return os.environ.get("PHYSGS_SORT_GATHER", "0").strip() == "1"
-
-
 # the per-particle arrays the sort permutes (MPMSolver attribute names), in _scatter's order
 PERMUTED = ("x", "v", "C", "F", "tau", "ep", "_p_vol", "_p_face", "_p_mass", "_mat", "_act_bits", "_order")
 PERMUTED_TYPES = (vec3, vec3, mat3, mat3, mat3, ti.f32, ti.f32, ti.f32, ti.f32, ti.i32, ti.i32, ti.i32)
@@ -332,8 +293,6 @@ class DeviceSort:
         self.scan = Scan(G ** 3 + 1)
         self.keys = _key_kernel(arch == "cpu")  # serial on the CPU: a reproducible order
         self.spare = None
-        self.gather = gather_default()
-        self.src = None  # [P] i32 slot -> particle (gather mode)
 
     def _spares(self) -> dict:
         if self.spare is None:
@@ -347,20 +306,13 @@ class DeviceSort:
         spare = self._spares()
         cur = [getattr(solver, n) for n in PERMUTED]
         new = [spare[n] for n in PERMUTED]
-        if self.gather:
-            if self.src is None:
-                self.src = ti.ndarray(ti.i32, self.P)
-            _slots(self.rank, self.key, self.count, self.src)
-            _gather(self.src, *cur, *new)
-        else:
-            _scatter(self.rank, self.key, self.count, *cur, *new)
+        _scatter(self.rank, self.key, self.count, *cur, *new)
         for n, a, b in zip(PERMUTED, cur, new):
             setattr(solver, n, b)
             spare[n] = a
 
     def nbytes(self) -> int:
-        return 4 * (2 * self.P + self.G ** 3 + 1) + (4 * 40 * self.P if self.spare is not None else 0) + \
-            (4 * self.P if self.src is not None else 0)
+        return 4 * (2 * self.P + self.G ** 3 + 1) + (4 * 40 * self.P if self.spare is not None else 0)
 
 
 def sorted_by_base(x: np.ndarray, dx: float, G: int) -> bool:
