@@ -1465,9 +1465,15 @@ def copy_state(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, ox: V1, ov: V1, oC: 
 
 
 @ti.kernel
-def gather(idx: ti.types.ndarray(dtype=ti.i64, ndim=1), x: V1, F: M1, out_x: V1, out_F: M1, scale: ti.f32):
-    """out_x[j] = scale * x[idx[j]], out_F[j] = F[idx[j]] (visible particles, original order)."""
+def gather(idx: ti.types.ndarray(dtype=ti.i64, ndim=1), x: V1, F: M1, out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+           scale: ti.f32):
+    """out[j] = (scale * x[idx[j]], F[idx[j]] row by row) [12] (stored particles, input order):
+    one array, so that a frame comes to the host in one copy."""
     for j in idx:
         i = idx[j]
-        out_x[j] = scale * x[i]
-        out_F[j] = F[i]
+        xi = scale * x[i]
+        Fi = F[i]
+        for a in ti.static(range(3)):
+            out[j, a] = xi[a]
+        for a, b in ti.static(ti.ndrange(3, 3)):
+            out[j, 3 + 3 * a + b] = Fi[a, b]

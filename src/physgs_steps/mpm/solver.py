@@ -824,15 +824,18 @@ class MPMSolver:
                     proxied.append((b, sel, at[rows[sel]]))
             idx = _ndarray_from(st[sim].astype(np.int64) if len(sim) else np.zeros(1, np.int64), ti.i64)
             n = max(len(sim), 1)
-            self._gather_cache = (rows, idx, ti.ndarray(K.vec3, n), ti.ndarray(K.mat3, n), sim, stat,
-                                  static_pos[rows[stat]], proxied)
-        _, idx, ox, oF, sim, stat, spos, proxied = self._gather_cache
+            self._gather_cache = (rows, idx, ti.ndarray(ti.f32, (n, 12)), sim, stat, static_pos[rows[stat]], proxied)
+        _, idx, out, sim, stat, spos, proxied = self._gather_cache
+        if len(sim):
+            K.gather(idx, self.x, self.F, out, 1.0 / self.L)
+            a = out.to_numpy()[: len(sim)]  # [S, 12]: x, then F row by row
+        if len(sim) and len(sim) == len(rows):  # every row simulated (sim is then 0..R-1): no scatter into place
+            return np.ascontiguousarray(a[:, :3]), a[:, 3:].reshape(-1, 3, 3)
         out_x = np.empty((len(rows), 3), np.float32)
         out_F = np.empty((len(rows), 3, 3), np.float32)
         if len(sim):
-            K.gather(idx, self.x, self.F, ox, oF, 1.0 / self.L)
-            out_x[sim] = ox.to_numpy()[: len(sim)]
-            out_F[sim] = oF.to_numpy()[: len(sim)]
+            out_x[sim] = a[:, :3]
+            out_F[sim] = a[:, 3:].reshape(-1, 3, 3)
         out_x[stat] = self._x_static[spos]
         out_F[stat] = np.eye(3, dtype=np.float32)
         if proxied:
