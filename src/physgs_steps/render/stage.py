@@ -386,7 +386,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                 # frame before) reuses that frame's state
                 own = [j for j in range(len(ids)) if rows[j] != (rows[j - 1] if j else prev[0] if prev else None)]
                 states, failed = {}, None
-                for part in _chunks(own, 1 if per_frame else len(own)):
+                for part in _chunks(own, 1 if per_frame else max(len(own), 1)):
                     read = []  # (j, (x, F, non-finite rows))
                     for j in part:
                         t1 = time.perf_counter()
