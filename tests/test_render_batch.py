@@ -1,7 +1,8 @@
 """The render stage's batched loop: the frames of a batch are deformed, checked against their
 cameras and counted (coverage) together, with one read-back per batch. Each frame gets the
 bits it gets alone, and errors name the same first frame as the frame-by-frame loop
-(PHYSGS_RENDER_PER_FRAME=1)."""
+(PHYSGS_RENDER_PER_FRAME=1). The unit tests run on CUDA too where it is present, the stage on
+gsplat where it loads."""
 from __future__ import annotations
 
 import json
@@ -26,6 +27,9 @@ from physgs_steps.runtime import write_json
 from physgs_steps.scene_io import save_gaussians
 
 LOG = logging.getLogger("test.render_batch")
+# the stacks against single frames on every device here: on CUDA other kernels (cuBLAS batched
+# products, reductions) run than on the CPU, and the bits are checked there too
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
 def _bits(a: torch.Tensor, b: torch.Tensor) -> bool:
@@ -144,17 +148,17 @@ def test_batched_loop_raises_for_the_same_first_frame(tmp_path, monkeypatch, nan
         assert not (tmp_path / "out" / "video.mp4").exists()
 
 
-def _blob(rng, n, centre) -> torch.Tensor:
-    return torch.from_numpy(rng.normal(0.0, 0.1, (n, 3)) + centre).float()
+def _blob(rng, n, centre, device="cpu") -> torch.Tensor:
+    return torch.from_numpy(rng.normal(0.0, 0.1, (n, 3)) + centre).float().to(device)
 
 
-def test_camera_check_of_a_batch_raises_for_the_same_frame_as_frame_by_frame():
+@pytest.mark.parametrize("device", DEVICES)
+def test_camera_check_of_a_batch_raises_for_the_same_frame_as_frame_by_frame(device):
     """Frame 3 of 5 has every centre behind the near plane; frame 1 clips a few (warned);
     frame 4 (after the error) sits inside the object."""
     rng = np.random.default_rng(2)
     cam = C.Camera(C.look_at([0.0, -1.0, 0.0], [0.0, 0.0, 0.0]), C.intrinsics_from_fov(50, 64, 48), 64, 48)
-    means = [_blob(rng, 3000, [0, 0, 0]), _blob(rng, 3000, [0.3, -0.9, 0]), _blob(rng, 3000, [0, 0.1, 0]),
-             _blob(rng, 3000, [0, -2.0, 0]), _blob(rng, 3000, [0, -1.0, 0])]
+    means = [_blob(rng, 3000, c, device) for c in ([0, 0, 0], [0.3, -0.9, 0], [0, 0.1, 0], [0, -2.0, 0], [0, -1.0, 0])]
     frames = [10, 11, 12, 13, 14]
     clipped_b, clipped_1 = [], []
     with pytest.raises(RenderError) as batched:
@@ -173,9 +177,10 @@ def test_camera_check_of_a_batch_raises_for_the_same_frame_as_frame_by_frame():
     assert C.check_views(means, [cam] * 5, 0.01) == [C.check_view(m, cam, 0.01) for m in means]
 
 
-def test_coverage_of_a_batch_equals_frame_by_frame():
+@pytest.mark.parametrize("device", DEVICES)
+def test_coverage_of_a_batch_equals_frame_by_frame(device):
     rng = np.random.default_rng(3)
-    alpha = torch.from_numpy(rng.uniform(0.0, 1.0, (5, 17, 23)).astype(np.float32))
+    alpha = torch.from_numpy(rng.uniform(0.0, 1.0, (5, 17, 23)).astype(np.float32)).to(device)
     alpha[2] = 0.5  # exactly at the threshold: not covered
     alpha[3, :4] = 0.0
     counts = coverage_counts(alpha)
@@ -183,7 +188,8 @@ def test_coverage_of_a_batch_equals_frame_by_frame():
     assert counts[2] == 0 and all(isinstance(c, int) for c in counts)
 
 
-def test_deform_of_a_stack_gives_each_frames_bits():
+@pytest.mark.parametrize("device", DEVICES)
+def test_deform_of_a_stack_gives_each_frames_bits(device):
     """deform_frames of B frames = B calls of one frame (deform), bit for bit: a partial index,
     hidden rows, polar rotations of frames converging after different iteration counts."""
     rng = np.random.default_rng(4)
@@ -193,12 +199,13 @@ def test_deform_of_a_stack_gives_each_frames_bits():
     n = 2003  # not a multiple of the CPU's vector width: the scalar tails of the vectorised loops
     src = GaussianScene(means=rng.normal(0, 0.05, (n, 3)), log_scales=np.log(rng.uniform(0.003, 0.01, (n, 3))),
                         quats=rng.normal(size=(n, 4)), opacity_logits=rng.normal(2.0, 1.0, n), sh=rng.normal(0, 0.4, (n, 4, 3)))
-    rest = rest_gaussians(t.to_sim_scene(src), smap)
-    index = torch.from_numpy(np.sort(rng.choice(n, 1500, replace=False)))
+    rest = rest_gaussians(t.to_sim_scene(src), smap, device)
+    index = torch.from_numpy(np.sort(rng.choice(n, 1500, replace=False))).to(device)
     x, F = _twisting_frames(rng.normal(0.5, 0.05, (1500, 3)), 5, rng)
     F[3, :7] *= -1.0  # inverted rows: the SVD path
-    xt, Ft = smap.points(torch.from_numpy(x).double()).float(), smap.linear(torch.from_numpy(F))
-    hide = torch.from_numpy(rng.uniform(size=(5, 1500)) < 0.05)
+    xt = smap.points(torch.from_numpy(x).to(device, torch.float64)).float()
+    Ft = smap.linear(torch.from_numpy(F).to(device))
+    hide = torch.from_numpy(rng.uniform(size=(5, 1500)) < 0.05).to(device)
     for h in (None, hide):
         stack = deform_frames(rest, index, xt, Ft, True, h)
         for b in range(5):
@@ -209,13 +216,14 @@ def test_deform_of_a_stack_gives_each_frames_bits():
     assert all(_bits(R[b], polar_rotation(Ft[b])) for b in range(5))
     # frames of 15 rows: alone, the CPU computes them in the scalar tail of its vectorised loops,
     # in a stack in the vector body (whose pow rounds differently)
-    Fs = torch.from_numpy(_twisting_frames(rng.normal(size=(15, 3)), 40, rng)[1])  # [40, 15, 3, 3]
+    Fs = torch.from_numpy(_twisting_frames(rng.normal(size=(15, 3)), 40, rng)[1]).to(device)  # [40, 15, 3, 3]
     R = polar_rotation(Fs)
     assert all(_bits(R[b], polar_rotation(Fs[b])) for b in range(40))
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("cut", [True, False])
-def test_carrier_of_a_stack_gives_each_frames_bits(cut):
+def test_carrier_of_a_stack_gives_each_frames_bits(cut, device):
     rng = np.random.default_rng(5)
     gx = rng.uniform(0.4, 0.6, (3001, 3))
     s = particle_spacing(1 / 32, 4)
@@ -224,11 +232,33 @@ def test_carrier_of_a_stack_gives_each_frames_bits(cut):
     if not cut:
         c.spacing = 0.0  # no tear distance
     x0 = gx[reps][np.argsort(reps)]
-    cmap = CarrierMap.build(c, c.drivers, gx, x0)
+    cmap = CarrierMap.build(c, c.drivers, gx, x0, device)
     cmap.chunk = 1000  # several passes
     x, F = _twisting_frames(x0, 4, rng)
     x[2, :40, 0] += 0.2  # a tear in frame 2
-    xs, Fs = cmap.apply(torch.from_numpy(x), torch.from_numpy(F))
+    x, F = torch.from_numpy(x).to(device), torch.from_numpy(F).to(device)
+    xs, Fs = cmap.apply(x, F)
     for b in range(4):
-        x1, F1 = cmap.apply(torch.from_numpy(x[b]), torch.from_numpy(F[b]))
+        x1, F1 = cmap.apply(x[b], F[b])
         assert _bits(xs[b], x1) and _bits(Fs[b], F1)
+
+
+@pytest.mark.gpu
+def test_batched_loop_on_gsplat_renders_the_per_frame_loops_frames_bit_for_bit(tmp_path, monkeypatch):
+    """The same on the GPU renderer (skipped without gsplat/CUDA): frames of a batch deformed in
+    one stack on CUDA, against frame by frame."""
+    from physgs_steps.render.gsplat_backend import cuda_ready
+
+    ok, why = cuda_ready()
+    if not ok:
+        pytest.skip(f"gsplat/CUDA not usable: {why}")
+    inputs = _inputs(tmp_path, hold=(2, 3, 7), nan_frame=5)
+    cfg = _cfg({"backend": "gsplat", "batch": 3, "on_nonfinite": "hide"},
+               {"azimuth_deg": -90.0, "elevation_deg": 10.0, "azimuth_per_frame_deg": 7.0})
+    cfg["device"] = "cuda"
+    one, rep1 = _render(tmp_path, inputs, cfg, "one", monkeypatch, per_frame=True)
+    many, rep = _render(tmp_path, inputs, cfg, "many", monkeypatch, per_frame=False)
+    assert len(one) == 8 and [k for k in one if one[k] != many.get(k)] == []
+    for key in ("coverage", "clipped_frames", "hidden_nonfinite", "reused", "empty_frames"):
+        assert rep[key] == rep1[key], key
+    assert rep["backend"] == "gsplat" and rep["timings"]["frames_per_call"] == 3

@@ -305,7 +305,7 @@ def deform_frames(rest: Gaussians, index: torch.Tensor, x: torch.Tensor, F: torc
 
     Every operation is elementwise or a product per row (no reduction across rows, the
     polar rotations converge per frame), so each frame gets the bits it gets alone
-    (tests/test_render_deform.py checks it); the stack costs the launches of one frame.
+    (tests/test_render_batch.py checks it); the stack costs the launches of one frame.
 
     Args:
         rest: [N] rest gaussians in the source frame (:func:`rest_gaussians`).
@@ -446,10 +446,7 @@ class CarrierMap:
         nb, ns = x.shape[0], self.rows.shape[0]
         xs = torch.empty((nb, ns, 3), dtype=x.dtype, device=x.device)
         Fs = torch.empty((nb, ns, 3, 3), dtype=F.dtype, device=F.device)
-        # frames per pass: the whole stack on CUDA (the launches of one frame); one on the CPU,
-        # where a stack's [B, c, K, 3, 3] temporaries leave the cache (16 frames of 20k
-        # gaussians took 0.48 s in one pass, 0.31 s frame by frame)
-        fb = nb if x.is_cuda else 1
+        fb = self.frames_per_pass(x)
         step = max(1, self.chunk // fb)  # gaussians per pass: the temporaries of one frame's pass
         for f0 in range(0, nb, fb):
             fr = slice(f0, f0 + fb)
@@ -466,6 +463,13 @@ class CarrierMap:
                 xs[fr, a:b] = (w.unsqueeze(-1) * pred).sum(dim=-2)
                 Fs[fr, a:b] = torch.einsum("...ck,...ckij->...cij", w.to(F.dtype), Fk)
         return xs, Fs
+
+    @staticmethod
+    def frames_per_pass(x: torch.Tensor) -> int:
+        """Frames of the stack x [B, M, 3] that :meth:`apply` blends in one pass: all on CUDA (the
+        launches of one frame); one on the CPU, where a stack's [B, c, K, 3, 3] temporaries leave
+        the cache (16 frames of 20k gaussians took 0.48 s in one pass, 0.31 s frame by frame)."""
+        return int(x.shape[0]) if x.is_cuda else 1
 
     def hidden(self, bad: torch.Tensor) -> torch.Tensor:
         """[Ns] bool moving gaussians with a non-finite driver, from the [M] driver mask."""

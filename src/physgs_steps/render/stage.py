@@ -7,7 +7,12 @@ optional ``cameras`` (an INRIA cameras.json, source frame).
 final.h5 is streamed once, frame after frame; gaussians the simulation does not move
 (static surroundings, static instances) are drawn at rest in every frame. A frame held at
 rest (the same stored row as the frame before) reuses the deformed gaussians, and its image
-too when the camera has not moved.
+too when the camera has not moved. The frames go in batches (``render.batch``, bounded by GPU
+memory: :func:`frames_per_call`): a batch's new states are deformed in one stack, checked
+against their cameras with one read-back and drawn in one gsplat call, and their coverage
+counts come back in one read-back (on a GPU each small op is a launch paid on the host and
+each read-back a synchronisation); every frame gets the bits it gets alone
+(tests/test_render_batch.py). ``PHYSGS_RENDER_PER_FRAME=1`` does that work frame by frame.
 Outputs: ``video`` (H.264 mp4), ``contact_sheet`` (PNG grid of frames), ``report``
 (render.json), optional ``frames`` (folder of PNGs; default ``frames/`` next to the video
 when ``render.png_frames`` is set).
