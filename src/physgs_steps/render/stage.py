@@ -377,7 +377,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     t_render = t_deform = t_read = 0.0
     next_log = 0.1
     prev = None      # (stored row, gaussians, camera) of the previous frame
-    prev_img = None  # (image, covered pixels) of the previous frame
+    prev_img = None  # (image, coverage) of the previous frame
     reused = {"states": 0, "images": 0}
     try:
         vw = VideoWriter(outputs["video"], width, height, rcfg["fps"], rcfg["crf"], rcfg.get("preset", "medium"))
@@ -389,7 +389,8 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                 t0 = time.perf_counter()
                 # frames with a state of their own; a frame held at rest (the stored row of the
                 # frame before) reuses that frame's state
-                own = [j for j in range(len(ids)) if rows[j] != (rows[j - 1] if j else prev[0] if prev else None)]
+                before = [prev[0] if prev is not None else None] + rows[:-1]  # stored row of the frame before each
+                own = [j for j in range(len(ids)) if rows[j] != before[j]]
                 states, failed = {}, None
                 for part in _chunks(own, 1 if per_frame else max(len(own), 1)):
                     read = []  # (j, (x, F, non-finite rows))
@@ -430,11 +431,11 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                     prev = (rows[j], g, cam)
                 t0 = time.perf_counter()
                 todo = [j for j in range(len(ids)) if not copy[j]]
-                imgs, covered = [None] * len(ids), [None] * len(ids)  # covered: pixels above COVERED_ALPHA
+                imgs, covered = [None] * len(ids), [None] * len(ids)  # covered: fraction of pixels above COVERED_ALPHA
                 if todo:
                     ri, ra = renderer.render_frames([gs[j] for j in todo], [bcams[j] for j in todo])  # ra [B', H, W]
                     for n_, (j, c) in enumerate(zip(todo, coverage_counts(ra, per_frame))):
-                        imgs[j], covered[j] = ri[n_], c
+                        imgs[j], covered[j] = ri[n_], c / ra[n_].numel()
                 for j in range(len(ids)):
                     if copy[j]:
                         imgs[j], covered[j] = (imgs[j - 1], covered[j - 1]) if j > 0 else prev_img
@@ -443,7 +444,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                 t_render += time.perf_counter() - t0
                 for k, t in enumerate(ids):
                     pos = b0 + k
-                    coverage.append(covered[k] / (width * height))
+                    coverage.append(covered[k])
                     vw.append(imgs[k])
                     if frame_dir is not None:
                         frame_dir.add(t, imgs[k])
