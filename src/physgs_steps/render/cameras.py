@@ -250,40 +250,78 @@ class ViewCheck:
 
 
 def check_view(means, camera: Camera, near: float, max_rows: int = 20000) -> ViewCheck:
-    """Where the gaussians are relative to ``camera`` (a strided subsample of at most ``max_rows``).
-
-    The work stays on the centres' device (float64) with one read-back of two fractions; the
-    percentile box only where some centre lies behind the near plane.
+    """Where the gaussians are relative to ``camera`` (:func:`check_views` of one view).
 
     Args:
         means: [N, 3] torch tensor or array of centres in the camera's world frame.
         camera: the camera.
         near: near-plane distance.
     """
+    return check_views([means], [camera], near, max_rows)[0]
+
+
+def check_views(means: list, cameras: list[Camera], near: float, max_rows: int = 20000) -> list[ViewCheck]:
+    """Where the gaussians ``means[i]`` are relative to ``cameras[i]``, for a batch of frames.
+
+    Each set of centres is subsampled (strided, at most ``max_rows``); the work stays on the
+    centres' device (float64), with one read-back of the fractions of all frames; the
+    percentile box is computed only for frames where some centre lies behind the near plane.
+
+    Args:
+        means: B [N_i, 3] torch tensors or arrays of centres in the cameras' world frame (one
+            device); sets of one size are stacked and checked in one pass.
+        cameras: B cameras.
+        near: near-plane distance.
+    Returns:
+        B :class:`ViewCheck`.
+    """
     import torch
 
-    m = torch.as_tensor(means)
-    if m.shape[0] > max_rows:
-        m = m[:: int(math.ceil(m.shape[0] / max_rows))]
-    n = int(m.shape[0])
-    if n == 0:
-        return ViewCheck(0, 0.0, None, 0.0)
-    m = m.detach().to(torch.float64)  # [n, 3]
-    view = torch.as_tensor(camera.viewmat, dtype=torch.float64, device=m.device)  # [4, 4]
-    pc = m @ view[:3, :3].T + view[:3, 3]  # [n, 3] camera frame
-    z = pc[:, 2]
+    if len(means) != len(cameras):
+        raise ValueError(f"{len(means)} sets of centres but {len(cameras)} cameras")
+    ms = []
+    for m in means:
+        m = torch.as_tensor(m)
+        if m.shape[0] > max_rows:
+            m = m[:: int(math.ceil(m.shape[0] / max_rows))]
+        ms.append(m.detach())
+    checks: list[ViewCheck | None] = [ViewCheck(0, 0.0, None, 0.0) if m.shape[0] == 0 else None for m in ms]
+    todo = [i for i, c in enumerate(checks) if c is None]
+    if not todo:
+        return checks
+    dev = ms[todo[0]].device
+    views = torch.as_tensor(np.stack([cameras[i].viewmat for i in todo]), dtype=torch.float64, device=dev)  # [B, 4, 4]
+    ks = torch.as_tensor(np.stack([cameras[i].K for i in todo]), dtype=torch.float64, device=dev)  # [B, 3, 3]
+    size = torch.as_tensor([[cameras[i].width, cameras[i].height] for i in todo], dtype=torch.float64, device=dev)  # [B, 2]
+    if len({tuple(ms[i].shape) for i in todo}) == 1:  # one pass over the stack [B, n, 3]
+        fracs = _view_fractions(torch.stack([ms[i] for i in todo]).to(torch.float64), views, ks, size, near)
+    else:  # frames with rows left out (hidden): one pass each, still one read-back
+        fracs = torch.cat([_view_fractions(ms[i].to(torch.float64)[None], views[k:k + 1], ks[k:k + 1],
+                                           size[k:k + 1], near) for k, i in enumerate(todo)])
+    for i, (frac_front, frac_in) in zip(todo, fracs.tolist()):  # the one read-back
+        frac_behind = 1.0 - frac_front
+        inside = None
+        if frac_behind > 0.0:
+            m = ms[i].to(torch.float64)
+            q = torch.tensor([0.02, 0.98], dtype=torch.float64, device=m.device)
+            lo, hi = torch.quantile(m, q, dim=0).cpu().numpy()  # linear interpolation, as np.percentile
+            pos = cameras[i].position
+            inside = bool(((pos >= lo) & (pos <= hi)).all())
+        checks[i] = ViewCheck(int(ms[i].shape[0]), frac_behind, inside, frac_in)
+    return checks
+
+
+def _view_fractions(m, views, ks, size, near: float):
+    """[B, 2] (fraction in front of the near plane, fraction projecting inside the image) of
+    centres m [B, n, 3] (float64) seen by cameras with viewmats [B, 4, 4], K [B, 3, 3] and
+    image (width, height) [B, 2]."""
+    import torch
+
+    pc = m @ views[:, :3, :3].transpose(1, 2) + views[:, None, :3, 3]  # [B, n, 3] camera frame
+    z = pc[..., 2]  # [B, n]
     front = z >= near
     zf = torch.clamp_min(z, near)
-    K = camera.K
-    u = float(K[0, 0]) * pc[:, 0] / zf + float(K[0, 2])
-    v = float(K[1, 1]) * pc[:, 1] / zf + float(K[1, 2])
-    in_img = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    frac_front, frac_in = torch.stack([front.double().mean(), in_img.double().mean()]).tolist()  # one read-back
-    frac_behind = 1.0 - frac_front
-    inside = None
-    if frac_behind > 0.0:
-        q = torch.tensor([0.02, 0.98], dtype=torch.float64, device=m.device)
-        lo, hi = torch.quantile(m, q, dim=0).cpu().numpy()  # linear interpolation, as np.percentile
-        pos = camera.position
-        inside = bool(((pos >= lo) & (pos <= hi)).all())
-    return ViewCheck(n, frac_behind, inside, frac_in)
+    u = ks[:, 0, 0, None] * pc[..., 0] / zf + ks[:, 0, 2, None]  # [B, n] pixels
+    v = ks[:, 1, 1, None] * pc[..., 1] / zf + ks[:, 1, 2, None]
+    in_img = front & (u >= 0) & (u < size[:, 0, None]) & (v >= 0) & (v < size[:, 1, None])
+    return torch.stack([front.double().mean(dim=1), in_img.double().mean(dim=1)], dim=1)

@@ -7,7 +7,12 @@ optional ``cameras`` (an INRIA cameras.json, source frame).
 final.h5 is streamed once, frame after frame; gaussians the simulation does not move
 (static surroundings, static instances) are drawn at rest in every frame. A frame held at
 rest (the same stored row as the frame before) reuses the deformed gaussians, and its image
-too when the camera has not moved.
+too when the camera has not moved. The frames go in batches (``render.batch``, bounded by GPU
+memory: :func:`frames_per_call`): a batch's new states are deformed in one stack, checked
+against their cameras with one read-back and drawn in one gsplat call, and their coverage
+counts come back in one read-back (on a GPU each small op is a launch paid on the host and
+each read-back a synchronisation); every frame gets the bits it gets alone
+(tests/test_render_batch.py). ``PHYSGS_RENDER_PER_FRAME=1`` does that work frame by frame.
 Outputs: ``video`` (H.264 mp4), ``contact_sheet`` (PNG grid of frames), ``report``
 (render.json), optional ``frames`` (folder of PNGs; default ``frames/`` next to the video
 when ``render.png_frames`` is set).
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
@@ -39,7 +45,8 @@ from ..prepare import load_transform
 from ..runtime import project_root, write_json
 from ..scene_io import load_gaussians
 from . import cameras as C
-from .deform import NONFINITE_POLICIES, CarrierMap, SourceMap, check_frame, covers_all, deform, rest_gaussians
+from .deform import (NONFINITE_POLICIES, CarrierMap, Gaussians, SourceMap, check_frame, covers_all, deform_frames,
+                     rest_gaussians)
 from .renderer import Renderer, RenderSettings, resolve_backend
 from .video import FrameDir, VideoWriter, contact_sheet, sheet_indices, write_png
 
@@ -47,6 +54,9 @@ NEAR_FRACTION = 1e-3  # automatic near plane: this fraction of the scene size
 FAR_FACTOR = 1e3  # automatic far plane: this many scene sizes beyond the farthest camera's distance
 CLIP_WARN_FRACTION = 0.05  # > 5 % of the centres behind the near plane: clipped (inside the box: error)
 COVERED_ALPHA = 0.5  # a pixel counts as covered at accumulated alpha above this
+# "1": the frames of a batch are deformed, checked against their cameras and counted (coverage)
+# one at a time, with a host synchronisation each, as before the batched loop (an A/B knob)
+PER_FRAME_ENV = "PHYSGS_RENDER_PER_FRAME"
 
 
 # ---------------------------------------------------------------------------- config
@@ -178,18 +188,64 @@ def build_cameras(ccfg: dict, rcfg: dict, frame_ids: list[int], bounds, cameras_
     return cams, record
 
 
-def check_camera(frame: int, means: torch.Tensor, cam: C.Camera, near: float, clipped: list) -> None:
-    """Raise on a camera inside the object or with everything behind it; note clipped frames."""
-    v = C.check_view(means, cam, near)
-    where = f"camera at {np.round(cam.position, 4).tolist()}"
-    if v.n and v.frac_behind >= 1.0:
-        raise RenderError(f"frame {frame}: every gaussian is behind the near plane ({near}) of the {where}; "
-                          "the camera looks away from the object (check camera.look_at / cameras.json)")
-    if v.inside_box and v.frac_behind > CLIP_WARN_FRACTION:
-        raise RenderError(f"frame {frame}: the {where} is inside the object ({100 * v.frac_behind:.0f}% of the "
-                          f"gaussians lie behind its near plane); increase camera.radius or move the camera")
-    if v.frac_behind > CLIP_WARN_FRACTION:
-        clipped.append((frame, round(v.frac_behind, 4)))
+def check_cameras(frames: list[int], means: list[torch.Tensor], cams: list[C.Camera], near: float,
+                  clipped: list) -> None:
+    """Raise on a camera inside the object or with everything behind it, for the first such
+    frame in order; note clipped frames (``clipped``: (frame, fraction behind) pairs).
+
+    Args:
+        frames: B frame numbers; means: B [n_b, 3] centres of the simulated object (one
+            device); cams: B cameras. One read-back for all (:func:`cameras.check_views`).
+    """
+    for frame, v, cam in zip(frames, C.check_views(means, cams, near), cams):
+        where = f"camera at {np.round(cam.position, 4).tolist()}"
+        if v.n and v.frac_behind >= 1.0:
+            raise RenderError(f"frame {frame}: every gaussian is behind the near plane ({near}) of the {where}; "
+                              "the camera looks away from the object (check camera.look_at / cameras.json)")
+        if v.inside_box and v.frac_behind > CLIP_WARN_FRACTION:
+            raise RenderError(f"frame {frame}: the {where} is inside the object ({100 * v.frac_behind:.0f}% of the "
+                              f"gaussians lie behind its near plane); increase camera.radius or move the camera")
+        if v.frac_behind > CLIP_WARN_FRACTION:
+            clipped.append((frame, round(v.frac_behind, 4)))
+
+
+def deform_states(states: list[tuple], smap: SourceMap, cmap: CarrierMap, rest: Gaussians, with_rotation: bool,
+                  full: bool) -> tuple[list[Gaussians], list[torch.Tensor], list]:
+    """Gaussians of B stored states, the states without non-finite rows in one pass.
+
+    Args:
+        states: B (x [M, 3], F [M, 3, 3] sim-frame arrays, [M] bool non-finite rows or None).
+        smap, cmap: the map to the source frame and the carrier; rest: the rest gaussians.
+        with_rotation: polar rotations for view-dependent SH; full: ``covers_all(cmap.rows, N)``.
+    Returns:
+        (B :class:`Gaussians`; B [n_b, 3] centres of the simulated object, as drawn (hidden
+        rows left out), for the camera check; B [Ns] bool hidden gaussians or None).
+    """
+    dev = rest.means.device
+    gs, objs, hides = [None] * len(states), [None] * len(states), [None] * len(states)
+    plain = [b for b, st in enumerate(states) if st[2] is None]
+    for group in ([plain] if plain else []) + [[b] for b, st in enumerate(states) if st[2] is not None]:
+        x = torch.from_numpy(np.stack([states[b][0] for b in group])).to(dev, torch.float64)  # [B, M, 3]
+        F = torch.from_numpy(np.stack([states[b][1] for b in group])).to(dev)  # [B, M, 3, 3]
+        xs, Fs = cmap.apply(smap.points(x).float(), smap.linear(F))  # [B, Ns, 3], [B, Ns, 3, 3] source frame
+        hide = None if states[group[0]][2] is None else cmap.hidden(torch.as_tensor(states[group[0]][2]))  # [Ns]
+        out = deform_frames(rest, cmap.rows, xs, Fs, with_rotation, None if hide is None else hide[None], full)
+        for k, b in enumerate(group):
+            gs[b], hides[b] = out[k], hide
+            objs[b] = xs[k] if hide is None else xs[k][~hide.to(dev)]  # = the drawn centres g.means[rows]
+    return gs, objs, hides
+
+
+def coverage_counts(alpha: torch.Tensor, per_frame: bool = False) -> list[int]:
+    """Pixels with alpha above COVERED_ALPHA in each of the frames alpha [B, H, W], read back
+    once for the batch (``per_frame``: once a frame, the A/B of PER_FRAME_ENV)."""
+    if per_frame:
+        return [int((a > COVERED_ALPHA).sum()) for a in alpha]
+    return (alpha > COVERED_ALPHA).flatten(1).sum(dim=1).tolist()
+
+
+def _chunks(seq: list, n: int) -> list[list]:
+    return [seq[i:i + n] for i in range(0, len(seq), n)]
 
 
 def cpu_threads(requested: int | None, log: logging.Logger) -> int:
@@ -286,7 +342,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
              index.numel(), frames.m, "identity" if cmap.identity else "budget", cmap.index.shape[1],
              static_rows.size, time.perf_counter() - t0)
     timings["carrier"] = round(time.perf_counter() - t0, 3)
-    full = covers_all(index, scene.n)  # once: deform() would check it every frame
+    full = covers_all(index, scene.n)  # once: deform_frames() would check it every batch
     sel = list(range(0, frames.n_frames, int(rcfg["every_nth"])))
     degree = renderer.degree(rest)
     log.info("%d gaussians, %d simulated, %d of %d frames to render (%d distinct stored states), SH degree %d",
@@ -308,69 +364,87 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
     frame_dir = None
     if rcfg["png_frames"]:
         frame_dir = FrameDir(outputs.get("frames") or Path(outputs["video"]).parent / "frames")
-    batch = frames_per_call(rcfg["batch"], rcfg["batch_gaussians"], scene.n, rcfg["batch_pixels"],
-                            width * height) if backend == "gsplat" else 1
-    if backend == "gsplat" and batch < int(rcfg["batch"]):
-        log.info("%d frames per gsplat call (render.batch %d, capped by render.batch_gaussians %d at %d gaussians "
+    # a batch of frames is deformed, checked and counted together, and drawn in one gsplat call
+    # (the CPU renderer draws its frames one after the other)
+    batch = frames_per_call(rcfg["batch"], rcfg["batch_gaussians"], scene.n, rcfg["batch_pixels"], width * height)
+    if batch < int(rcfg["batch"]):
+        log.info("%d frames per batch (render.batch %d, capped by render.batch_gaussians %d at %d gaussians "
                  "and render.batch_pixels %d at %dx%d)", batch, int(rcfg["batch"]), int(rcfg["batch_gaussians"]),
                  scene.n, int(rcfg["batch_pixels"]), width, height)
+    per_frame = os.environ.get(PER_FRAME_ENV) == "1"
+    if per_frame:
+        log.info("%s=1: frames deformed, checked and counted one at a time", PER_FRAME_ENV)
     t_render = t_deform = t_read = 0.0
     next_log = 0.1
     prev = None      # (stored row, gaussians, camera) of the previous frame
-    prev_img = None  # (image, alpha) of the previous frame
+    prev_img = None  # (image, coverage) of the previous frame
     reused = {"states": 0, "images": 0}
     try:
         vw = VideoWriter(outputs["video"], width, height, rcfg["fps"], rcfg["crf"], rcfg.get("preset", "medium"))
         with vw:
             for b0 in range(0, len(sel), batch):
                 ids = sel[b0:b0 + batch]
+                bcams = cams[b0:b0 + batch]
+                rows = [frames.row(t) for t in ids]
+                t0 = time.perf_counter()
+                # frames with a state of their own; a frame held at rest (the stored row of the
+                # frame before) reuses that frame's state
+                before = [prev[0] if prev is not None else None] + rows[:-1]  # stored row of the frame before each
+                own = [j for j in range(len(ids)) if rows[j] != before[j]]
+                states, failed = {}, None
+                for part in _chunks(own, 1 if per_frame else max(len(own), 1)):
+                    read = []  # (j, (x, F, non-finite rows))
+                    for j in part:
+                        t1 = time.perf_counter()
+                        x, F = frames.x(ids[j]), frames.F(ids[j])
+                        t_read += time.perf_counter() - t1
+                        try:
+                            bad = check_frame(ids[j], x, F, rcfg["on_nonfinite"])
+                        except RenderError as e:  # raised once the frames before it are checked
+                            failed = e
+                            break
+                        if bad is not None:
+                            log.warning("frame %d: %d stored particles with NaN/inf: the gaussians they carry are hidden",
+                                        ids[j], int(bad.sum()))
+                        read.append((j, (x, F, bad)))
+                    if read:
+                        gl, objs, hides = deform_states([st for _, st in read], smap, cmap, rest, degree > 0, full)
+                        for (j, _), g, hide in zip(read, gl, hides):
+                            states[j] = g
+                            if hide is not None:
+                                hidden[ids[j]] = int(hide.sum())
+                        check_cameras([ids[j] for j, _ in read], objs, [bcams[j] for j, _ in read],
+                                      renderer.settings.near, clipped)
+                    if failed is not None:
+                        raise failed
+                t_deform += time.perf_counter() - t0
                 gs, copy = [], []  # copy[j]: frame j repeats the previous frame's image
-                for j, t in enumerate(ids):
-                    cam = cams[b0 + j]
-                    row = frames.row(t)
-                    if prev is not None and prev[0] == row:  # held at rest: the state of the frame before
+                for j, cam in enumerate(bcams):
+                    if j in states:
+                        g, same = states[j], False
+                    else:  # held at rest: the state of the frame before
                         g = prev[1]
                         reused["states"] += 1
                         same = np.array_equal(prev[2].viewmat, cam.viewmat) and np.array_equal(prev[2].K, cam.K)
-                    else:
-                        t0 = time.perf_counter()
-                        x, F = frames.x(t), frames.F(t)
-                        t_read += time.perf_counter() - t0
-                        bad = check_frame(t, x, F, rcfg["on_nonfinite"])
-                        if bad is not None:
-                            log.warning("frame %d: %d stored particles with NaN/inf: the gaussians they carry are hidden",
-                                        t, int(bad.sum()))
-                        x_src = smap.points(torch.from_numpy(x).to(dev, torch.float64)).float()  # [M, 3]
-                        F_src = smap.linear(torch.from_numpy(F).to(dev))  # [M, 3, 3]
-                        xs, Fs = cmap.apply(x_src, F_src)  # [Ns, 3], [Ns, 3, 3] source frame
-                        hide = None if bad is None else cmap.hidden(torch.as_tensor(bad))
-                        if hide is not None:
-                            hidden[t] = int(hide.sum())
-                        g = deform(rest, index, xs, Fs, None, degree > 0, hide, full)
-                        t_deform += time.perf_counter() - t0
-                        obj = g.means[index] if hide is None else g.means[index[~hide.to(dev)]]  # the simulated object
-                        check_camera(t, obj, cam, renderer.settings.near, clipped)
-                        same = False
                     gs.append(g)
                     copy.append(same)
-                    prev = (row, g, cam)
+                    prev = (rows[j], g, cam)
                 t0 = time.perf_counter()
                 todo = [j for j in range(len(ids)) if not copy[j]]
-                imgs, alphas = [None] * len(ids), [None] * len(ids)
+                imgs, covered = [None] * len(ids), [None] * len(ids)  # covered: fraction of pixels above COVERED_ALPHA
                 if todo:
-                    ri, ra = renderer.render_frames([gs[j] for j in todo], [cams[b0 + j] for j in todo])
-                    for n_, j in enumerate(todo):
-                        imgs[j], alphas[j] = ri[n_], ra[n_]
+                    ri, ra = renderer.render_frames([gs[j] for j in todo], [bcams[j] for j in todo])  # ra [B', H, W]
+                    for n_, (j, c) in enumerate(zip(todo, coverage_counts(ra, per_frame))):
+                        imgs[j], covered[j] = ri[n_], c / ra[n_].numel()
                 for j in range(len(ids)):
                     if copy[j]:
-                        imgs[j], alphas[j] = (imgs[j - 1], alphas[j - 1]) if j > 0 else prev_img
+                        imgs[j], covered[j] = (imgs[j - 1], covered[j - 1]) if j > 0 else prev_img
                         reused["images"] += 1
-                prev_img = (imgs[-1], alphas[-1])
+                prev_img = (imgs[-1], covered[-1])
                 t_render += time.perf_counter() - t0
                 for k, t in enumerate(ids):
                     pos = b0 + k
-                    a = alphas[k]  # torch, on the renderer's device
-                    coverage.append(int((a > COVERED_ALPHA).sum()) / a.numel())
+                    coverage.append(covered[k])
                     vw.append(imgs[k])
                     if frame_dir is not None:
                         frame_dir.add(t, imgs[k])
