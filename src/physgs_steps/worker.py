@@ -162,7 +162,7 @@ def _source_fingerprint() -> str:
 # worker (the knobs below are read when a stage or the solver starts: A/B runs need their own)
 ENV_KEYS = ("PHYSGS_CACHE_DIR", "TORCH_EXTENSIONS_DIR", "CUDA_VISIBLE_DEVICES", "PYTHONPATH", "TI_ARCH",
             "PHYSGS_TI_REPS", "PHYSGS_TI_GRAPH", "PHYSGS_TI_FAST_LAUNCH", "PHYSGS_TI_BLOCK_DIM",
-            "PHYSGS_TI_ADVANCED_OPT", "PHYSGS_PROFILE_DIR")
+            "PHYSGS_TI_ADVANCED_OPT", "PHYSGS_PROFILE_DIR", "PHYSGS_RENDER_PER_FRAME")
 
 
 def worker_key() -> str:
