@@ -113,12 +113,18 @@ def _render(d, inputs, cfg, name, monkeypatch, per_frame: bool) -> tuple[dict, d
     return pngs, json.loads((d / name / "render.json").read_text())
 
 
-@pytest.mark.parametrize("batch, camera", [(16, None), (2, {"azimuth_deg": -90.0, "elevation_deg": 10.0,
-                                                            "azimuth_per_frame_deg": 7.0})])
-def test_batched_loop_renders_the_per_frame_loops_frames_bit_for_bit(tmp_path, monkeypatch, batch, camera):
+@pytest.mark.parametrize("batch, camera, deform_rows", [
+    (16, None, None), (16, None, 1),  # 1: the batch's states deformed one frame a stack (stage.DEFORM_ROWS)
+    (2, {"azimuth_deg": -90.0, "elevation_deg": 10.0, "azimuth_per_frame_deg": 7.0}, None)])
+def test_batched_loop_renders_the_per_frame_loops_frames_bit_for_bit(tmp_path, monkeypatch, batch, camera,
+                                                                    deform_rows):
     """Batch larger than the video (16 > 8 frames) with a still camera, and batches of 2 with a
     turning one; held frames (2, 3 and 7 repeat the frame before: the batch of frames 2 and 3
     has no state of its own), a frame with hidden rows (5)."""
+    import physgs_steps.render.stage as S
+
+    if deform_rows is not None:
+        monkeypatch.setattr(S, "DEFORM_ROWS", deform_rows)
     inputs = _inputs(tmp_path, hold=(2, 3, 7), nan_frame=5)
     cfg = _cfg({"batch": batch, "on_nonfinite": "hide"}, camera)
     one, rep1 = _render(tmp_path, inputs, cfg, "one", monkeypatch, per_frame=True)

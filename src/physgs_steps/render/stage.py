@@ -57,6 +57,15 @@ COVERED_ALPHA = 0.5  # a pixel counts as covered at accumulated alpha above this
 # "1": the frames of a batch are deformed, checked against their cameras and counted (coverage)
 # one at a time, with a host synchronisation each, as before the batched loop (an A/B knob)
 PER_FRAME_ENV = "PHYSGS_RENDER_PER_FRAME"
+# Gaussian rows (frames x simulated gaussians) deformed in one stack.  The stack saves host
+# launches; its scratch tensors grow with it.  Measured on one H100 (2026-11-28, `physgs bench
+# pipeline bear --structures server --no-cold`, whole 16-frame batches in one stack): default
+# bear (46k gaussians) render's deform part 0.09-0.12 s against 0.45 s frame by frame, peak GPU
+# 1427-1429 against 1303 MiB; 300k bear at 1080p (4 frames a batch) 0.41 against 0.45 s, but
+# peak GPU 2035 against 1751 MiB.  So a stack holds at most 2^19 rows: 11 frames of the default
+# bear, one frame at a time from 2^19 gaussians up (memory as frame by frame, where the stack
+# gained nothing).
+DEFORM_ROWS = 1 << 19
 
 
 # ---------------------------------------------------------------------------- config
@@ -224,7 +233,8 @@ def deform_states(states: list[tuple], smap: SourceMap, cmap: CarrierMap, rest: 
     dev = rest.means.device
     gs, objs, hides = [None] * len(states), [None] * len(states), [None] * len(states)
     plain = [b for b, st in enumerate(states) if st[2] is None]
-    for group in ([plain] if plain else []) + [[b] for b, st in enumerate(states) if st[2] is not None]:
+    per = max(1, DEFORM_ROWS // max(1, len(cmap.rows)))  # frames a stack: DEFORM_ROWS gaussian rows at most
+    for group in _chunks(plain, per) + [[b] for b, st in enumerate(states) if st[2] is not None]:
         x = torch.from_numpy(np.stack([states[b][0] for b in group])).to(dev, torch.float64)  # [B, M, 3]
         F = torch.from_numpy(np.stack([states[b][1] for b in group])).to(dev)  # [B, M, 3, 3]
         xs, Fs = cmap.apply(smap.points(x).float(), smap.linear(F))  # [B, Ns, 3], [B, Ns, 3, 3] source frame
