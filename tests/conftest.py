@@ -31,22 +31,41 @@ os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 # all its tests in one worker; the files reading the tiny bear run share one group (the run is
 # made once). Groups start heaviest first (most of their time is compiling Taichi kernels), so
 # the two workers finish together instead of one waiting on a slow file collected last.
+# Two details make this hold (before, neither did and every test was scheduled on its own: the
+# tiny bear run was made in both workers and most files' kernels compiled in both):
+# - xdist's worker reads the xdist_group marks in its own pytest_collection_modifyitems (it
+#   appends "@<group>" to each node id); this conftest is registered before that plugin, so
+#   without tryfirst its marks came after xdist had looked;
+# - loadgroup by default reorders groups by their number of tests (--loadscope-reorder),
+#   which puts many quick tests first; pytest_configure turns that off here so the order below
+#   is the order the groups start in.
 SHARED_GROUPS = {"test_slurm.py": "tiny_bear", "test_workflow.py": "tiny_bear"}
-HEAVY_FIRST = ("tiny_bear", "test_bgdo.py", "test_validation.py", "test_benchmark.py", "test_mpm_p2g.py",
-               "test_mpm_rigid.py", "test_mpm_materials.py", "test_mpm_dynamics.py", "test_mpm_solver.py",
-               "test_mpm_rest.py", "test_robustness.py")
+# heaviest first: worker-seconds of each group in a full run of the suite on the 2-core machine
+# (cold Taichi cache, as CI starts; /work/notes/suitetime_*.txt); the rest follow in file order
+HEAVY_FIRST = ("test_mpm_rigid.py", "test_mpm_materials.py", "tiny_bear", "test_benchmark.py", "test_validation.py",
+               "test_mpm_solver.py", "test_mpm_p2g.py", "test_mpm_rigid_proxies.py", "test_robustness.py",
+               "test_bgdo.py", "test_mpm_dynamics.py", "test_builtin_scenes.py", "test_build_wheelhouse.py",
+               "test_metrics_videophy2.py", "test_metrics.py", "test_worker.py", "test_smk_server.py",
+               "test_region.py", "test_mpm_rest.py")
 
 
+def pytest_configure(config):
+    if hasattr(config.option, "loadscopereorder"):  # pytest-xdist present
+        config.option.loadscopereorder = False
+
+
+def group_of(item) -> str:
+    name = item.path.name
+    return SHARED_GROUPS.get(name, name)
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's worker turns the marks into "@<group>" node ids
 def pytest_collection_modifyitems(config, items):
-    def group(item) -> str:
-        name = item.path.name
-        return SHARED_GROUPS.get(name, name)
-
     for item in items:
         if item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(group(item)))
+            item.add_marker(pytest.mark.xdist_group(group_of(item)))
     rank = {g: i for i, g in enumerate(HEAVY_FIRST)}
-    items.sort(key=lambda it: rank.get(group(it), len(rank)))  # stable: file order kept within a rank
+    items.sort(key=lambda it: rank.get(group_of(it), len(rank)))  # stable: file order kept within a rank
 
 
 @pytest.fixture(scope="session")
