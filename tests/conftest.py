@@ -26,6 +26,46 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
 
+def _memoize_taichi_source_positions() -> None:
+    """Taichi (1.7) turns every kernel's Python AST into its IR in each process, also when the
+    offline cache holds the compiled kernel, and the suite builds many solvers: each time, for
+    every AST node, ``ASTTransformerContext.get_pos_info`` formats the node's source position
+    (file, line, the line and a caret line wrapped by textwrap) for Taichi's error messages
+    and debug info. That formatting was about 40 % of the CPU time of the MPM tests (measured:
+    tests/test_mpm_rigid_proxies.py head-on collision, user 39.3 s -> 22.8 s with this memo),
+    and 98 % of its calls repeat a position already formatted in the process. The result is a
+    pure function of the source lines and positions it reads, which are the memo's key, so the
+    strings (and every test result) are unchanged; only the suite's processes are affected
+    (the stages' own processes keep Taichi as installed)."""
+    try:
+        from taichi.lang.ast import ast_transformer_utils as U
+    except ImportError:
+        return
+    ctx = getattr(U, "ASTTransformerContext", None)
+    orig = getattr(ctx, "get_pos_info", None)
+    if orig is None or getattr(orig, "_physgs_memo", False):
+        return
+    memo: dict = {}
+    spans = ("For", "While", "FunctionDef", "If")  # get_pos_info shows these down to their body
+
+    def get_pos_info(self, node):
+        lineno, span = node.lineno, node.__class__.__name__ in spans
+        end = max(node.body[0].lineno - 1, lineno) if span else node.end_lineno
+        key = (self.file, self.lineno_offset, self.func.func.__name__, self.indent, lineno, node.end_lineno,
+               node.col_offset, node.end_col_offset, span, tuple(self.src[lineno - 1:max(end, lineno)]))
+        try:
+            return memo[key]
+        except KeyError:
+            info = memo[key] = orig(self, node)
+            return info
+
+    get_pos_info._physgs_memo = True
+    ctx.get_pos_info = get_pos_info
+
+
+_memoize_taichi_source_positions()
+
+
 # Parallel runs (the README's command runs the suite in 2 pytest-xdist workers, --dist loadgroup):
 # each test file is one group, so a file's module fixtures and compiled Taichi kernels serve
 # all its tests in one worker; the files reading the tiny bear run share one group (the run is
