@@ -61,6 +61,28 @@ def _memoize_taichi_source_positions() -> None:
 
     get_pos_info._physgs_memo = True
     ctx.get_pos_info = get_pos_info
+    # the same materialization reads each kernel function's source (inspect.getsourcelines:
+    # tokenizes the file's block) every time; the suite does not edit source files while it
+    # runs, so one read per function object serves them all (a copy each time: callers own it)
+    from taichi.lang import kernel_impl as K
+
+    read = getattr(K, "getsourcelines", None)
+    if read is not None and not getattr(read, "_physgs_memo", False):
+        sources: dict = {}
+
+        def getsourcelines(obj):
+            try:
+                lines, start = sources[obj]
+            except (KeyError, TypeError):
+                lines, start = read(obj)
+                try:
+                    sources[obj] = (lines, start)
+                except TypeError:  # unhashable: not kept
+                    pass
+            return list(lines), start
+
+        getsourcelines._physgs_memo = True
+        K.getsourcelines = getsourcelines
 
 
 _memoize_taichi_source_positions()
