@@ -32,11 +32,15 @@ def _memoize_taichi_source_positions() -> None:
     every AST node, ``ASTTransformerContext.get_pos_info`` formats the node's source position
     (file, line, the line and a caret line wrapped by textwrap) for Taichi's error messages
     and debug info. That formatting was about 40 % of the CPU time of the MPM tests (measured:
-    tests/test_mpm_rigid_proxies.py head-on collision, user 39.3 s -> 22.8 s with this memo),
+    tests/test_mpm_rigid_proxies.py head-on collision, user 39.3 s -> 24.5 s with this memo,
+    22.6 s with the source memo below too),
     and 98 % of its calls repeat a position already formatted in the process. The result is a
     pure function of the source lines and positions it reads, which are the memo's key, so the
     strings (and every test result) are unchanged; only the suite's processes are affected
-    (the stages' own processes keep Taichi as installed)."""
+    (the stages' own processes keep Taichi as installed). PHYSGS_TEST_TI_MEMO=0 leaves Taichi
+    as installed (A/B of the suite's time)."""
+    if os.environ.get("PHYSGS_TEST_TI_MEMO", "1") == "0":
+        return
     try:
         from taichi.lang.ast import ast_transformer_utils as U
     except ImportError:
@@ -102,8 +106,9 @@ _memoize_taichi_source_positions()
 #   which puts many quick tests first; pytest_configure turns that off here so the order below
 #   is the order the groups start in.
 SHARED_GROUPS = {"test_slurm.py": "tiny_bear", "test_workflow.py": "tiny_bear"}
-# heaviest first: worker-seconds of each group in a full run of the suite on the 2-core machine
-# (cold Taichi cache, as CI starts; /work/notes/suitetime_*.txt); the rest follow in file order
+# heaviest first, from worker-seconds of each group in full runs of the suite on the 2-core
+# machine (the order matters little once the heavy groups lead: measured with a cold Taichi
+# cache, as CI starts, the two workers ended 3 s apart); the rest follow in file order
 HEAVY_FIRST = ("test_mpm_rigid.py", "test_mpm_materials.py", "tiny_bear", "test_benchmark.py", "test_validation.py",
                "test_mpm_solver.py", "test_mpm_p2g.py", "test_mpm_rigid_proxies.py", "test_robustness.py",
                "test_bgdo.py", "test_mpm_dynamics.py", "test_builtin_scenes.py", "test_build_wheelhouse.py",
