@@ -26,27 +26,113 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
 
+def _memoize_taichi_source_positions() -> None:
+    """Taichi (1.7) turns every kernel's Python AST into its IR in each process, also when the
+    offline cache holds the compiled kernel, and the suite builds many solvers: each time, for
+    every AST node, ``ASTTransformerContext.get_pos_info`` formats the node's source position
+    (file, line, the line and a caret line wrapped by textwrap) for Taichi's error messages
+    and debug info. That formatting was about 40 % of the CPU time of the MPM tests (measured:
+    tests/test_mpm_rigid_proxies.py head-on collision, user 39.3 s -> 24.5 s with this memo,
+    22.6 s with the source memo below too),
+    and 98 % of its calls repeat a position already formatted in the process. The result is a
+    pure function of the source lines and positions it reads, which are the memo's key, so the
+    strings (and every test result) are unchanged; only the suite's processes are affected
+    (the stages' own processes keep Taichi as installed). PHYSGS_TEST_TI_MEMO=0 leaves Taichi
+    as installed (A/B of the suite's time)."""
+    if os.environ.get("PHYSGS_TEST_TI_MEMO", "1") == "0":
+        return
+    try:
+        from taichi.lang.ast import ast_transformer_utils as U
+    except ImportError:
+        return
+    ctx = getattr(U, "ASTTransformerContext", None)
+    orig = getattr(ctx, "get_pos_info", None)
+    if orig is None or getattr(orig, "_physgs_memo", False):
+        return
+    memo: dict = {}
+    spans = ("For", "While", "FunctionDef", "If")  # get_pos_info shows these down to their body
+
+    def get_pos_info(self, node):
+        lineno, span = node.lineno, node.__class__.__name__ in spans
+        end = max(node.body[0].lineno - 1, lineno) if span else node.end_lineno
+        key = (self.file, self.lineno_offset, self.func.func.__name__, self.indent, lineno, node.end_lineno,
+               node.col_offset, node.end_col_offset, span, tuple(self.src[lineno - 1:max(end, lineno)]))
+        try:
+            return memo[key]
+        except KeyError:
+            info = memo[key] = orig(self, node)
+            return info
+
+    get_pos_info._physgs_memo = True
+    ctx.get_pos_info = get_pos_info
+    # the same materialization reads each kernel function's source (inspect.getsourcelines:
+    # tokenizes the file's block) every time; the suite does not edit source files while it
+    # runs, so one read per function object serves them all (a copy each time: callers own it)
+    from taichi.lang import kernel_impl as K
+
+    read = getattr(K, "getsourcelines", None)
+    if read is not None and not getattr(read, "_physgs_memo", False):
+        sources: dict = {}
+
+        def getsourcelines(obj):
+            try:
+                lines, start = sources[obj]
+            except (KeyError, TypeError):
+                lines, start = read(obj)
+                try:
+                    sources[obj] = (lines, start)
+                except TypeError:  # unhashable: not kept
+                    pass
+            return list(lines), start
+
+        getsourcelines._physgs_memo = True
+        K.getsourcelines = getsourcelines
+
+
+_memoize_taichi_source_positions()
+
+
 # Parallel runs (the README's command runs the suite in 2 pytest-xdist workers, --dist loadgroup):
 # each test file is one group, so a file's module fixtures and compiled Taichi kernels serve
 # all its tests in one worker; the files reading the tiny bear run share one group (the run is
 # made once). Groups start heaviest first (most of their time is compiling Taichi kernels), so
 # the two workers finish together instead of one waiting on a slow file collected last.
+# Two details make this hold (before, neither did and every test was scheduled on its own: the
+# tiny bear run was made in both workers and most files' kernels compiled in both):
+# - xdist's worker reads the xdist_group marks in its own pytest_collection_modifyitems (it
+#   appends "@<group>" to each node id); this conftest is registered before that plugin, so
+#   without tryfirst its marks came after xdist had looked;
+# - loadgroup by default reorders groups by their number of tests (--loadscope-reorder),
+#   which puts many quick tests first; pytest_configure turns that off here so the order below
+#   is the order the groups start in.
 SHARED_GROUPS = {"test_slurm.py": "tiny_bear", "test_workflow.py": "tiny_bear"}
-HEAVY_FIRST = ("tiny_bear", "test_bgdo.py", "test_validation.py", "test_benchmark.py", "test_mpm_p2g.py",
-               "test_mpm_rigid.py", "test_mpm_materials.py", "test_mpm_dynamics.py", "test_mpm_solver.py",
-               "test_mpm_rest.py", "test_robustness.py")
+# heaviest first, from worker-seconds of each group in full runs of the suite on the 2-core
+# machine (the order matters little once the heavy groups lead: measured with a cold Taichi
+# cache, as CI starts, the two workers ended 3 s apart); the rest follow in file order
+HEAVY_FIRST = ("test_mpm_rigid.py", "test_mpm_materials.py", "tiny_bear", "test_benchmark.py", "test_validation.py",
+               "test_mpm_solver.py", "test_mpm_p2g.py", "test_mpm_rigid_proxies.py", "test_robustness.py",
+               "test_bgdo.py", "test_mpm_dynamics.py", "test_builtin_scenes.py", "test_build_wheelhouse.py",
+               "test_metrics_videophy2.py", "test_metrics.py", "test_worker.py", "test_smk_server.py",
+               "test_region.py", "test_mpm_rest.py")
 
 
+def pytest_configure(config):
+    if hasattr(config.option, "loadscopereorder"):  # pytest-xdist present
+        config.option.loadscopereorder = False
+
+
+def group_of(item) -> str:
+    name = item.path.name
+    return SHARED_GROUPS.get(name, name)
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's worker turns the marks into "@<group>" node ids
 def pytest_collection_modifyitems(config, items):
-    def group(item) -> str:
-        name = item.path.name
-        return SHARED_GROUPS.get(name, name)
-
     for item in items:
         if item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(group(item)))
+            item.add_marker(pytest.mark.xdist_group(group_of(item)))
     rank = {g: i for i, g in enumerate(HEAVY_FIRST)}
-    items.sort(key=lambda it: rank.get(group(it), len(rank)))  # stable: file order kept within a rank
+    items.sort(key=lambda it: rank.get(group_of(it), len(rank)))  # stable: file order kept within a rank
 
 
 @pytest.fixture(scope="session")
