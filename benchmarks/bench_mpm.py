@@ -14,7 +14,8 @@ P2G variants (``--p2g``, src/physgs_steps/mpm/p2g_sorted.py), each measured on i
 from the same particles after the default solver: ``atomic`` (one float atomic per particle
 and node, the transfer before coarsening) and ``coarsened`` (runs of particles with the same
 stencil base summed in registers, one write per run; device re-sort by stencil base), with
-options ``:K=<particles per thread>`` (``K=cell``: a thread per cell of the last sort),
+options ``:K=<particles per thread>`` (``K=cell``: a thread per cell of the last sort; ``K=warp``:
+a thread per particle, runs summed across a warp's lanes, CUDA only),
 ``:N=<substeps between re-sorts>``, ``:S=1|3|9`` (threads sharing a run's 27 nodes), ``:grid=private|atomic`` (CPU: per-thread grids, the default there, or one grid with atomics
 as on CUDA).  A table per size gives each variant's rate and its ratio to ``atomic``.
 
@@ -52,7 +53,7 @@ def parse_variant(text: str) -> dict:
     for o in opts:
         key, _, value = o.partition("=")
         if key == "K":
-            kw["run_length"] = "cell" if value == "cell" else int(value)
+            kw["run_length"] = value if value in ("cell", "warp") else int(value)
         elif key == "N":
             kw["resort_every"] = int(value)
         elif key == "S":
@@ -204,7 +205,7 @@ def bench_variants(arch: str, x: np.ndarray, G: int, m, dt: float, variants: lis
     for text, s, rs, n in zip(variants, solvers, rates, counts):
         _profile(lambda: s.substep(dt), f"p2g {text}, P={P}")
         rows.append({"arch": s.arch, "particles": P, "n_grid": G, "variant": text, "p2g": s.p2g,
-                     "run_length": ("cell" if s.run_length == P2G.CELL else s.run_length)
+                     "run_length": ({P2G.CELL: "cell", P2G.WARP: "warp"}.get(s.run_length, s.run_length))
                      if s.p2g == "coarsened" and not s.private_grid else None,
                      "resort_every": s.resort_every if s.p2g == "coarsened" else None,
                      "grid_mode": "private" if s.private_grid else "atomic", "rate": max(rs),

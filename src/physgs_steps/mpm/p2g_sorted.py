@@ -18,9 +18,14 @@ consecutive threads add into the same 27 grid nodes, and those atomics serialise
   blocks of :data:`SCAN_BLOCK` summed serially per thread, recursively), then one scatter of
   every per-particle array into a second set of arrays, which then swaps with the first.
 
-Everything here runs on every Taichi backend (no CUDA-only shared memory), so the CPU tests
-check the code that runs on the GPU.  ``p2g: atomic`` keeps the one-atomic-per-particle
-transfer (the reference); ``auto`` resolves per arch with :data:`AUTO`.
+Everything here but the warp runs runs on every Taichi backend, so the CPU tests check the
+code that runs on the GPU.  ``p2g: atomic`` keeps the one-atomic-per-particle transfer (the
+reference); ``auto`` resolves per arch with :data:`AUTO`.
+
+* **Warp runs** (``run_length`` :data:`WARP`, CUDA only, opt-in): before every substep
+  :meth:`DeviceSort.index` sorts the slots, not the data (keys, scan, one int a particle); one
+  thread per index entry, and each run is summed across a warp's lanes by shuffles.  P2G then
+  costs the same whatever order the data has drifted into (README "Issue 18, ninth round").
 """
 
 import functools
@@ -30,6 +35,7 @@ import numpy as np
 import taichi as ti
 
 from ..errors import ConfigError
+from .backend import Launcher
 
 P2G_MODES = ("auto", "atomic", "coarsened")
 AUTO = {"cpu": "atomic", "cuda": "coarsened"}  # what ``auto`` picks per arch
@@ -40,6 +46,7 @@ AUTO = {"cpu": "atomic", "cuda": "coarsened"}  # what ``auto`` picks per arch
 AUTO_MIN_PARTICLES = 200_000
 RUN_LENGTH = 16  # CUDA: particles per thread in coarsened P2G
 CELL = -1  # run_length value: one thread per stencil-base cell of the last sort (its range of slots)
+WARP = -2  # run_length value (CUDA): a thread per particle, runs summed across each warp's lanes
 # Substeps between device re-sorts in coarsened mode.  What spoils the order is relative motion
 # (a block that falls keeps its particles in order; one that bounces and wobbles does not), and
 # a spoilt order splits the runs (more atomics).  Measured on one H200 (2026-11-28, jelly cube
@@ -57,6 +64,50 @@ RESORT_EVERY = 8
 # substep at 1M, 0.33 ms with 3 (Taichi's profiler; G2P 0.28 ms).
 SPLIT = 3
 SCAN_BLOCK = 128  # entries each thread sums serially in the prefix sum
+# ---- warp runs (run_length WARP, CUDA only: Taichi's warp intrinsics exist there alone)
+# One thread per particle, so that a warp's 32 lanes read 32 consecutive particles (coalesced
+# loads: the coarsened threads above read a run each, 16 particles apart, and wait on L1).  The
+# lanes holding one stencil base in a row (a run, as the sort leaves them) are a segment; each
+# node's four sums are reduced over the segment by shuffles (a segmented scan down the lanes,
+# five steps), and the segment's first lane adds them to the grid: one atomic per run and node,
+# as the coarsened transfer, with no 27 x 4 accumulator held across particles.
+WARP_SIZE = 32
+FULL_MASK = 0xFFFFFFFF
+
+
+@ti.func
+def warp_segments(key, lane):
+    """For a warp whose lanes hold sort keys ``key`` (-1: no particle): whether this lane
+    starts a segment of equal keys in a row, and [5] flags ``ok[s]``: lane + 2^s is in this
+    lane's segment (the steps of :func:`warp_sum`).  Every lane of the warp must call it."""
+    mask = ti.u32(FULL_MASK)
+    prev = ti.simt.warp.shfl_up_i32(mask, key, 1)
+    head = 0
+    if lane == 0 or prev != key:
+        head = 1
+    seg = head  # inclusive scan of the heads: the segment's number within the warp
+    for s in ti.static(range(5)):
+        o = ti.simt.warp.shfl_up_i32(mask, seg, 1 << s)
+        if lane >= (1 << s):
+            seg += o
+    ok = ti.Vector([0, 0, 0, 0, 0])
+    for s in ti.static(range(5)):
+        o = ti.simt.warp.shfl_down_i32(mask, seg, 1 << s)
+        if lane + (1 << s) < WARP_SIZE and o == seg:
+            ok[s] = 1
+    return head, ok
+
+
+@ti.func
+def warp_sum(val, ok):
+    """The sum of ``val`` over this lane and the rest of its segment below it (the segment's
+    first lane gets the whole segment's): a segmented suffix scan.  Every lane must call it."""
+    mask = ti.u32(FULL_MASK)
+    for s in ti.static(range(5)):
+        o = ti.simt.warp.shfl_down_f32(mask, val, 1 << s)
+        if ok[s] == 1:
+            val += o
+    return val
 
 vec3 = ti.types.vector(3, ti.f32)
 mat3 = ti.types.matrix(3, 3, ti.f32)
@@ -223,7 +274,8 @@ def _block_scan(a: I1, n: ti.i32, B: ti.i32, offs: I1):
 
 
 class Scan:
-    """In-place exclusive prefix sum of an int32 ndarray of length ``n`` (buffers kept)."""
+    """In-place exclusive prefix sum of an int32 ndarray of length ``n`` (buffers kept; each
+    launch site through a backend.Launcher, as the per-substep index calls it every substep)."""
 
     def __init__(self, n: int, block: int = SCAN_BLOCK):
         self.n, self.B = int(n), int(block)
@@ -234,15 +286,18 @@ class Scan:
             self.levels.append(ti.ndarray(ti.i32, m))
         self.zero = ti.ndarray(ti.i32, 1)
         self.zero.fill(0)
+        n_lvl = len(self.levels)
+        self._sums = [Launcher(_block_sums) for _ in range(n_lvl)]
+        self._scans = [Launcher(_block_scan) for _ in range(n_lvl + 1)]
 
     def __call__(self, a) -> None:
         arrays = [a] + self.levels
         sizes = [self.n] + [arr.shape[0] for arr in self.levels]
         for lvl in range(len(self.levels)):
-            _block_sums(arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
-        _block_scan(arrays[-1], sizes[-1], max(self.B, sizes[-1]), self.zero)
+            self._sums[lvl](arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
+        self._scans[-1](arrays[-1], sizes[-1], max(self.B, sizes[-1]), self.zero)
         for lvl in reversed(range(len(self.levels))):
-            _block_scan(arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
+            self._scans[lvl](arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
 
 
 def exclusive_scan(a) -> None:
@@ -272,6 +327,19 @@ def _scatter(dest: I1, key: I1, start: I1,
         order2[q] = order[p]
 
 
+@ti.kernel
+def _zero(a: I1):
+    for i in range(a.shape[0]):
+        a[i] = 0
+
+
+@ti.kernel
+def _index(key: I1, rank: I1, start: I1, idx: I1):
+    """idx[start[key[p]] + rank[p]] = p: the slots in stencil-base order, the data left in place."""
+    for p in range(key.shape[0]):
+        idx[start[key[p]] + rank[p]] = p
+
+
 # the per-particle arrays the sort permutes (MPMSolver attribute names), in _scatter's order
 PERMUTED = ("x", "v", "C", "F", "tau", "ep", "_p_vol", "_p_face", "_p_mass", "_mat", "_act_bits", "_order")
 PERMUTED_TYPES = (vec3, vec3, mat3, mat3, mat3, ti.f32, ti.f32, ti.f32, ti.f32, ti.i32, ti.i32, ti.i32)
@@ -293,6 +361,21 @@ class DeviceSort:
         self.scan = Scan(G ** 3 + 1)
         self.keys = _key_kernel(arch == "cpu")  # serial on the CPU: a reproducible order
         self.spare = None
+        self.idx = None  # index(): [P] the storage slots in stencil-base order
+
+    def index(self, solver) -> None:
+        """Sort the slots, not the data: ``idx`` [P] lists the storage slots by the stencil base
+        of their particle now (and ``count`` holds each base's first entry), for the warp-run
+        transfer, which reads the particles through it.  Keys, scan and one int per particle:
+        cheap enough for every substep, where :meth:`sort` moves 40 words a particle."""
+        if self.idx is None:  # the index's launches, through Launchers (fixed arrays: no argument processing)
+            self.idx = ti.ndarray(ti.i32, self.P)
+            self._launch = SimpleNamespace(zero=Launcher(_zero), keys=Launcher(self.keys), index=Launcher(_index))
+        run = self._launch
+        run.zero(self.count)
+        run.keys(solver.x, self.key, self.rank, self.count, float(solver.dx), self.G)
+        self.scan(self.count)
+        run.index(self.key, self.rank, self.count, self.idx)
 
     def _spares(self) -> dict:
         if self.spare is None:
@@ -312,7 +395,8 @@ class DeviceSort:
             spare[n] = a
 
     def nbytes(self) -> int:
-        return 4 * (2 * self.P + self.G ** 3 + 1) + (4 * 40 * self.P if self.spare is not None else 0)
+        return (4 * (2 * self.P + self.G ** 3 + 1) + (4 * 40 * self.P if self.spare is not None else 0)
+                + (4 * self.P if self.idx is not None else 0))
 
 
 def sorted_by_base(x: np.ndarray, dx: float, G: int) -> bool:

@@ -80,8 +80,9 @@ class MPMSolver:
             same stencil base in registers and writes the nodes once per run; particles are
             re-sorted on the device every ``resort_every`` substeps), or ``auto``
             (p2g_sorted.AUTO per arch).  Results equal up to float summation order.
-        run_length: coarsened P2G on one grid (CUDA): particles per thread, or ``"cell"``: one
-            thread per stencil-base cell of the last sort.
+        run_length: coarsened P2G on one grid (CUDA): particles per thread, ``"cell"``: one
+            thread per stencil-base cell of the last sort, or ``"warp"``: one thread per particle,
+            runs summed across a warp's lanes (p2g_sorted.py "warp runs").
         resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load).
         split: coarsened P2G with ``run_length`` particles per thread: threads per run (1, 3 or
             9), each summing its share of the 27 nodes (p2g_sorted.SPLITS); else unused.
@@ -123,16 +124,20 @@ class MPMSolver:
         self.n_chunks = max(1, min(os.cpu_count() or 1, MAX_CHUNKS)) if self.private_grid else 1
         self._p2g_asked = p2g
         self.p2g = P2G.resolve(p2g, self.arch)  # again in load_particles, with the particle count
-        run_length = P2G.CELL if run_length == "cell" else run_length
-        if not isinstance(run_length, int) or (run_length < 1 and run_length != P2G.CELL) or int(resort_every) < 0:
-            raise ConfigError("p2g", f"run_length must be >= 1 or 'cell' and resort_every >= 0, got {run_length!r}, "
-                                     f"{resort_every!r}")
+        run_length = {"cell": P2G.CELL, "warp": P2G.WARP}.get(run_length, run_length)
+        if not isinstance(run_length, int) or (run_length < 1 and run_length not in (P2G.CELL, P2G.WARP)) \
+                or int(resort_every) < 0:
+            raise ConfigError("p2g", f"run_length must be >= 1, 'cell' or 'warp' and resort_every >= 0, got "
+                                     f"{run_length!r}, {resort_every!r}")
+        if run_length == P2G.WARP and self.arch != "cuda":
+            raise ConfigError("p2g", f"run_length 'warp' needs CUDA (warp shuffles), the backend is {self.arch}")
         if split not in P2G.SPLITS:
             raise ConfigError("p2g", f"split must be one of {', '.join(map(str, P2G.SPLITS))}, got {split!r}")
         self.run_length = run_length
         self.resort_every = int(resort_every)
         self.split = int(split)
         self._sorter = None  # coarsened P2G: the device sort (p2g_sorted.DeviceSort)
+        self._indexing = False  # warp runs: DeviceSort.index before every substep
         self._since_sort = 0
         self.sort_generation = 0  # counts device re-sorts (storage order changes)
         self.combos = tuple(sorted({m.kernel_key for m in self.materials}))
@@ -235,8 +240,8 @@ class MPMSolver:
             self.p2g = "atomic"
         self._sorting = self.p2g == "coarsened" and self._can_resort()
         run = self.run_length if self.p2g == "coarsened" and not self.private_grid else 0  # else unused: one build
-        if run == P2G.CELL and not self._sorting:
-            run = P2G.RUN_LENGTH  # cells need the device sort's ranges
+        if run in (P2G.CELL, P2G.WARP) and not self._sorting:
+            run = P2G.RUN_LENGTH  # cells and warp runs need the device sort
         spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid, p2g=self.p2g,
                       run=run, split=self.split if run > 0 else 1)
         self._k = K.build(spec)
@@ -251,10 +256,16 @@ class MPMSolver:
         self.time = 0.0
         self._sorter = None
         self._cell_start = _ndarray_from(np.array([0, self.n_particles], np.int32), ti.i32)  # read with CELL runs only
+        self._pidx = self._cell_start  # read with WARP runs only
+        self._indexing = False
         if self._sorting:
             self._sorter = P2G.DeviceSort(self.n_particles, self.n_grid, self.arch)
             self._cell_start = self._sorter.count
             self.resort()
+            if run == P2G.WARP:
+                self._indexing = True
+                self._sorter.index(self)
+                self._pidx = self._sorter.idx
 
     # ------------------------------------------------------------------ storage order
     @property
@@ -640,6 +651,8 @@ class MPMSolver:
             self._stagger = dt
         if self._sorter is not None and self.resort_every > 0 and self._since_sort >= self.resort_every:
             self.resort()
+        if self._indexing:  # warp runs: the slots sorted by this substep's bases (p2g_sorted.DeviceSort.index)
+            self._sorter.index(self)
         return math.exp(-b.damping * dt) if b.damping > 0 else 1.0
 
     def _substep_args(self, dt: float, damp: float) -> tuple:
@@ -650,7 +663,7 @@ class MPMSolver:
                 self.grid_rm, self.grid_rv, self._mbody, self._gpart, self._gbody, self._bphi, *self._bpose, self._mparams, self._mcombo, self._dyn,
                 self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
                 float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]),
-                float(damp), self._cell_start)
+                float(damp), self._cell_start, self._pidx)
 
     def substeps(self, n: int, dt: float) -> None:
         """Advance by ``n`` substeps of ``dt`` seconds: the same as ``n`` calls of :meth:`substep`
@@ -679,6 +692,8 @@ class MPMSolver:
             m = n - done
             if self._sorter is not None and self.resort_every > 0:
                 m = min(m, self.resort_every - self._since_sort)
+            if self._indexing:
+                m = 1  # the index comes before each substep
             if self._batches is None:
                 try:
                     self._batches = _Batches(self._k, self._substep_args(dt, damp))
