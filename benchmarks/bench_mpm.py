@@ -13,7 +13,8 @@ P2G, float atomics, gravity and slip walls), on the same particles in the same p
 P2G variants (``--p2g``, src/physgs_steps/mpm/p2g_sorted.py), each measured on its own solver
 from the same particles after the default solver: ``atomic`` (one float atomic per particle
 and node, the transfer before coarsening) and ``coarsened`` (runs of particles with the same
-stencil base summed in registers, one write per run; device re-sort by stencil base), with
+stencil base summed before one write per run; device re-sort by stencil base; on CUDA by
+default warp runs, on the CPU runs of 16 consecutive particles in registers), with
 options ``:K=<particles per thread>`` (``K=cell``: a thread per cell of the last sort; ``K=warp``:
 a thread per particle, runs summed across a warp's lanes, CUDA only),
 ``:N=<substeps between re-sorts>``, ``:S=1|3|9`` (threads sharing a run's 27 nodes), ``:grid=private|atomic`` (CPU: per-thread grids, the default there, or one grid with atomics
@@ -38,7 +39,7 @@ import numpy as np
 ROWS = "ROWS "
 BATCH = 4  # physgs' substeps per call: MPMSolver.substeps, as the simulation stages advance
 GRID_FOR = {30_000: 32, 100_000: 48, 300_000: 64, 1_000_000: 96}
-DEFAULT_VARIANTS = ["atomic", "coarsened", "coarsened:K=8", "coarsened:K=32", "coarsened:K=cell",
+DEFAULT_VARIANTS = ["atomic", "coarsened", "coarsened:K=16", "coarsened:K=8", "coarsened:K=32", "coarsened:K=cell",
                     "coarsened:N=4", "coarsened:N=64"]
 
 
@@ -49,7 +50,7 @@ def parse_variant(text: str) -> dict:
     name, *opts = text.split(":")
     if name not in ("atomic", "coarsened"):
         raise SystemExit(f"--p2g {text!r}: the mode must be atomic or coarsened")
-    kw = {"p2g": name, "run_length": P2G.RUN_LENGTH, "resort_every": P2G.RESORT_EVERY}
+    kw = {"p2g": name}  # the solver's defaults (run_length auto: warp runs on CUDA, RESORT_EVERY[_WARP])
     for o in opts:
         key, _, value = o.partition("=")
         if key == "K":

@@ -713,18 +713,20 @@ def build(spec: Spec) -> SimpleNamespace:
                 touch_run = ti.max(touch_run, touch)
 
     @ti.func
-    def _p2g_warp(p, pidx: ti.template(), x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
+    def _p2g_warp(p, x: ti.template(), v: ti.template(), C: ti.template(), tau: ti.template(),
                   p_vol: ti.template(), p_face: ti.template(), p_mass: ti.template(), mat: ti.template(), mcombo: ti.template(),
                   act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(), grid_c: ti.template(),
                   mbody: ti.template(), dyn: ti.template(), lvl_phi: ti.template(), lvl_id: ti.template(),
                   lvl_rows: ti.template(), err: ti.template(), dt, t, dx, inv_dx, G, L, wall,
                   gbody: ti.template(), bphi: ti.template(), body_c: ti.template(), body_R: ti.template()):
-        """Warp-run P2G (p2g_sorted.py "warp runs", CUDA): entry ``p`` of this substep's index
-        ``pidx`` (the slots in stencil-base order; past the particles: an empty lane); the loop
-        over entries is a whole number of warps, lane = p % 32."""
+        """Warp-sorted P2G (p2g_sorted.py "warp runs", CUDA): slot ``p`` (past the particles:
+        an empty lane); the loop over slots is a whole number of warps, lane = p % 32.  Each
+        lane prepares its slot's particle; the warp sorts its 32 particles by stencil base
+        (p2g_sorted.warp_sort) and hands each lane the particle of its sorted place, so the
+        runs the stored order has split come together again; each run's node sums are reduced
+        over its lanes and its first lane adds them to the grid."""
         lane = p % P2G.WARP_SIZE
-        key = -1
-        base = ti.Vector([0, 0, 0])
+        key = P2G.NO_KEY
         fx = ti.Vector.zero(ti.f32, 3)
         mv = ti.Vector.zero(ti.f32, 3)
         affine = ti.Matrix.zero(ti.f32, 3, 3)
@@ -732,12 +734,25 @@ def build(spec: Spec) -> SimpleNamespace:
         touch = 0
         if p < x.shape[0]:
             # no rigid bodies here (the solver uses the atomic transfer with them): owner is 0
-            base, fx, _w, mv, affine, mass, touch, _owner = _p2g_prepare(pidx[p], x, v, C, tau, p_vol, p_face, p_mass,
+            base, fx, _w, mv, affine, mass, touch, _owner = _p2g_prepare(p, x, v, C, tau, p_vol, p_face, p_mass,
                                                                        mat, mcombo, act_bits, mbody, dyn, lvl_phi, lvl_id,
                                                                        lvl_rows, err, dt, t, dx, inv_dx, G, L, wall,
                                                                        gbody, bphi, body_c, body_R)
             key = (base[0] * G + base[1]) * G + base[2]
+            if touch == 1:  # (plain stores: any order)
+                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                    grid_c[0, base[0] + i, base[1] + j, base[2] + k] = 1.0
+        key, src = P2G.warp_sort(key, lane)
+        # this lane's particle is now lane src's: its stencil offset, momentum, affine matrix, mass
+        mask = ti.u32(P2G.FULL_MASK)
+        for a in ti.static(range(3)):
+            fx[a] = ti.simt.warp.shfl_sync_f32(mask, fx[a], src)
+            mv[a] = ti.simt.warp.shfl_sync_f32(mask, mv[a], src)
+        for a, b in ti.static(ti.ndrange(3, 3)):
+            affine[a, b] = ti.simt.warp.shfl_sync_f32(mask, affine[a, b], src)
+        mass = ti.simt.warp.shfl_sync_f32(mask, mass, src)
         head, ok = P2G.warp_segments(key, lane)
+        base = ti.Vector([key // (G * G), (key // G) % G, key % G])
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             dpos = (ti.Vector([i, j, k], dt=ti.f32) - fx) * dx
@@ -747,12 +762,9 @@ def build(spec: Spec) -> SimpleNamespace:
             sy = P2G.warp_sum(mom[1], ok)
             sz = P2G.warp_sum(mom[2], ok)
             sm = P2G.warp_sum(weight * mass, ok)
-            if head == 1 and key >= 0:
+            if head == 1 and key != P2G.NO_KEY:
                 ti.atomic_add(grid_v[0, base[0] + i, base[1] + j, base[2] + k], ti.Vector([sx, sy, sz]))
                 ti.atomic_add(grid_m[0, base[0] + i, base[1] + j, base[2] + k], sm)
-        if touch == 1:
-            for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                grid_c[0, base[0] + i, base[1] + j, base[2] + k] = 1.0
 
     @ti.func
     def _substep(x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), tau: ti.template(),
@@ -764,8 +776,7 @@ def build(spec: Spec) -> SimpleNamespace:
                  mparams: ti.template(), mcombo: ti.template(), dyn: ti.template(), lvl_phi: ti.template(),
                  lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), box: ti.template(), dt: ti.template(),
                  t: ti.template(), dx: ti.template(), wall: ti.template(), gx: ti.template(), gy: ti.template(),
-                 gz: ti.template(), damp: ti.template(), cell_start: ti.template(), pidx: ti.template(),
-                 part: ti.template()):
+                 gz: ti.template(), damp: ti.template(), cell_start: ti.template(), part: ti.template()):
         """One substep at time ``t``: the body of the kernels ``substep`` (one substep a launch)
         and ``substep_reps(R)`` (R a launch), inlined where it is called; its top-level loops
         are the launch's offloaded tasks.  Every argument is a template, so the body reads the
@@ -847,7 +858,7 @@ def build(spec: Spec) -> SimpleNamespace:
             elif ti.static(coarsened and run == P2G.WARP):
                 ti.loop_config(block_dim=128)  # whole warps: lane = slot % 32
                 for p in range((P + P2G.WARP_SIZE - 1) // P2G.WARP_SIZE * P2G.WARP_SIZE):
-                    _p2g_warp(p, pidx, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
+                    _p2g_warp(p, x, v, C, tau, p_vol, p_face, p_mass, mat, mcombo, act_bits, grid_v, grid_m, grid_c,
                               mbody, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall, gbody, bphi,
                               body_c, body_R)
             elif ti.static(coarsened and run == P2G.CELL):
@@ -1184,12 +1195,11 @@ def build(spec: Spec) -> SimpleNamespace:
                 grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4,
                 mbody: I1, gpart: D3, gbody: D2, bphi: S4, body_c: V1d, body_R: M1d, mparams: S2, mcombo: I1, dyn: S2,
                 lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32, t: ti.f32, dx: ti.f32,
-                wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1, pidx: I1,
-                part: ti.template()):
+                wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1, part: ti.template()):
         """One substep of ``dt`` at time ``t`` (``part``: _substep)."""
         _substep(x, v, C, F, tau, ep, p_vol, p_face, p_mass, mat, act_bits, grid_v, grid_m, grid_c, grid_b, grid_o,
                  grid_r, grid_rm, grid_rv, mbody, gpart, gbody, bphi, body_c, body_R, mparams, mcombo, dyn, lvl_phi,
-                 lvl_id, lvl_rows, err, box, dt, t, dx, wall, gx, gy, gz, damp, cell_start, pidx, part)
+                 lvl_id, lvl_rows, err, box, dt, t, dx, wall, gx, gy, gz, damp, cell_start, part)
 
     reps_kernels = {}
 
@@ -1215,12 +1225,12 @@ def build(spec: Spec) -> SimpleNamespace:
                           grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2, bphi: S4, body_c: V1d,
                           body_R: M1d, mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2,
                           err: I1, box: I2, dt: ti.f32, ts: Ts, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32,
-                          gz: ti.f32, damp: ti.f32, cell_start: I1, pidx: I1):
+                          gz: ti.f32, damp: ti.f32, cell_start: I1):
                 for r in ti.static(range(reps)):
                     _substep(x, v, C, F, tau, ep, p_vol, p_face, p_mass, mat, act_bits, grid_v, grid_m, grid_c,
                              grid_b, grid_o, grid_r, grid_rm, grid_rv, mbody, gpart, gbody, bphi, body_c, body_R,
                              mparams, mcombo, dyn, lvl_phi, lvl_id, lvl_rows, err, box, dt, ts[r], dx, wall, gx, gy,
-                             gz, damp, cell_start, pidx, 0)
+                             gz, damp, cell_start, 0)
 
             reps_kernels[reps] = substep_r
         return reps_kernels[reps]

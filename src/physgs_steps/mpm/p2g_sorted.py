@@ -22,10 +22,10 @@ Everything here but the warp runs runs on every Taichi backend, so the CPU tests
 code that runs on the GPU.  ``p2g: atomic`` keeps the one-atomic-per-particle transfer (the
 reference); ``auto`` resolves per arch with :data:`AUTO`.
 
-* **Warp runs** (``run_length`` :data:`WARP`, CUDA only, opt-in): before every substep
-  :meth:`DeviceSort.index` sorts the slots, not the data (keys, scan, one int a particle); one
-  thread per index entry, and each run is summed across a warp's lanes by shuffles.  P2G then
-  costs the same whatever order the data has drifted into (README "Issue 18, ninth round").
+* **Warp runs** (``run_length`` :data:`WARP`, CUDA's default: :data:`RUN_AUTO`): one thread
+  per particle; each warp sorts its 32 particles by stencil base (a bitonic sort by shuffles),
+  so that the runs which drift has split since the last device sort come together again
+  within the warp, and sums each run across its lanes (README "Issue 18, ninth round").
 """
 
 import functools
@@ -43,10 +43,18 @@ AUTO = {"cpu": "atomic", "cuda": "coarsened"}  # what ``auto`` picks per arch
 # thread a small scene launches too few threads to fill a GPU (27k particles: 1.7k threads on
 # an H100 with room for 270k).  Measured on one H100: coarsened 1.58x atomic at 300k, 2.58x at
 # 1M; the default bear (27k) ran its substeps slower after the switch (README "MPM step").
+# Warp runs (CUDA's default run_length) have a thread per particle and beat the atomic transfer
+# at 30k (1.20x) and 100k (1.68x) in bench_mpm.py (one H100, 2026-11-28); the threshold stays
+# until the default bear's GPU pipeline is measured with them (README "Issue 18, ninth round").
 AUTO_MIN_PARTICLES = 200_000
-RUN_LENGTH = 16  # CUDA: particles per thread in coarsened P2G
+RUN_LENGTH = 16  # particles per thread in coarsened P2G with runs (the CPU's default; CUDA: run_length=16)
 CELL = -1  # run_length value: one thread per stencil-base cell of the last sort (its range of slots)
-WARP = -2  # run_length value (CUDA): a thread per particle, runs summed across each warp's lanes
+WARP = -2  # run_length value (CUDA): a thread per particle, each warp sorted, runs summed across its lanes
+# what run_length "auto" (the solver's default) picks per arch.  Measured on one H100
+# (2026-11-28, bench_mpm.py --windows 5, jelly box falling then landed, window means, same
+# call): warp runs 1.35e9 particle-substeps/s at 10^6 and 1.04e9 at 300k, against 1.10e9 and
+# 8.4e8 for runs of 16 (README "Issue 18, ninth round")
+RUN_AUTO = {"cpu": RUN_LENGTH, "cuda": WARP}
 # Substeps between device re-sorts in coarsened mode.  What spoils the order is relative motion
 # (a block that falls keeps its particles in order; one that bounces and wobbles does not), and
 # a spoilt order splits the runs (more atomics).  Measured on one H200 (2026-11-28, jelly cube
@@ -57,6 +65,10 @@ WARP = -2  # run_length value (CUDA): a thread per particle, runs summed across 
 # 8 loses 1 % while the order holds and gains 8 % once it does not (README "Issue 18, eighth
 # round").  A sort costs about 0.45 ms at 10^6 (mostly the scatter of every particle array).
 RESORT_EVERY = 8
+# The same for warp runs, which sort each warp's particles themselves: a stale order costs them
+# less.  Same H100 call as RUN_AUTO: 10^6 particles 1.35e9 (every 8), 1.37e9 (16), 1.38e9 (32);
+# 300k 1.04e9, 1.08e9, 1.10e9.
+RESORT_EVERY_WARP = 32
 # CUDA: threads per run in coarsened P2G (SPLITS below).  Measured on one H200 (bench_mpm.py,
 # jelly, best of 3 interleaved rounds, median in brackets): 300k particles 8.83e8 (7.79e8)
 # particle-substeps/s with 1 thread per run, 9.91e8 (8.61e8) with 3, 9.94e8 (8.73e8) with 9;
@@ -67,17 +79,43 @@ SCAN_BLOCK = 128  # entries each thread sums serially in the prefix sum
 # ---- warp runs (run_length WARP, CUDA only: Taichi's warp intrinsics exist there alone)
 # One thread per particle, so that a warp's 32 lanes read 32 consecutive particles (coalesced
 # loads: the coarsened threads above read a run each, 16 particles apart, and wait on L1).  The
-# lanes holding one stencil base in a row (a run, as the sort leaves them) are a segment; each
-# node's four sums are reduced over the segment by shuffles (a segmented scan down the lanes,
-# five steps), and the segment's first lane adds them to the grid: one atomic per run and node,
-# as the coarsened transfer, with no 27 x 4 accumulator held across particles.
+# warp sorts its particles by stencil base (:func:`warp_sort`): between device sorts particles
+# cross cells and split the stored runs (Nsight Compute on the landed jelly box of bench_mpm.py:
+# 17.7 particles a run after a sort, 2.0 eight substeps later), but they stay near their slot,
+# so most of a split run is back together within its warp.  The lanes holding one base in a
+# row are then a segment; each node's four sums are reduced over the segment by shuffles (a
+# segmented scan down the lanes, five steps), and the segment's first lane adds them to the
+# grid: one atomic per run and node, with no 27 x 4 accumulator held across particles.
 WARP_SIZE = 32
 FULL_MASK = 0xFFFFFFFF
+NO_KEY = 0x7FFFFFFF  # an empty lane's key (past the last particle): sorts last
+
+
+@ti.func
+def warp_sort(key, lane):
+    """Bitonic sort of the warp's (key, lane) pairs, ascending by key then lane: returns the
+    key and the source lane of this lane's place in that order.  Every lane must call it."""
+    mask = ti.u32(FULL_MASK)
+    src = lane
+    for s1 in ti.static(range(1, 6)):  # blocks of 2, 4, ... 32
+        for s2 in ti.static(range(s1 - 1, -1, -1)):  # partner distance 2^s2
+            pk = ti.simt.warp.shfl_xor_i32(mask, key, 1 << s2)
+            ps = ti.simt.warp.shfl_xor_i32(mask, src, 1 << s2)
+            p_less = pk < key or (pk == key and ps < src)
+            up = (lane & (1 << s1)) == 0  # this block sorts ascending
+            low = (lane & (1 << s2)) == 0  # this lane is the lower of its pair
+            take = p_less
+            if low != up:
+                take = not p_less
+            if take:
+                key = pk
+                src = ps
+    return key, src
 
 
 @ti.func
 def warp_segments(key, lane):
-    """For a warp whose lanes hold sort keys ``key`` (-1: no particle): whether this lane
+    """For a warp whose lanes hold sort keys ``key``: whether this lane
     starts a segment of equal keys in a row, and [5] flags ``ok[s]``: lane + 2^s is in this
     lane's segment (the steps of :func:`warp_sum`).  Every lane of the warp must call it."""
     mask = ti.u32(FULL_MASK)
@@ -275,7 +313,7 @@ def _block_scan(a: I1, n: ti.i32, B: ti.i32, offs: I1):
 
 class Scan:
     """In-place exclusive prefix sum of an int32 ndarray of length ``n`` (buffers kept; each
-    launch site through a backend.Launcher, as the per-substep index calls it every substep)."""
+    launch site through a backend.Launcher: no per-call argument processing in the re-sort)."""
 
     def __init__(self, n: int, block: int = SCAN_BLOCK):
         self.n, self.B = int(n), int(block)
@@ -327,19 +365,6 @@ def _scatter(dest: I1, key: I1, start: I1,
         order2[q] = order[p]
 
 
-@ti.kernel
-def _zero(a: I1):
-    for i in range(a.shape[0]):
-        a[i] = 0
-
-
-@ti.kernel
-def _index(key: I1, rank: I1, start: I1, idx: I1):
-    """idx[start[key[p]] + rank[p]] = p: the slots in stencil-base order, the data left in place."""
-    for p in range(key.shape[0]):
-        idx[start[key[p]] + rank[p]] = p
-
-
 # the per-particle arrays the sort permutes (MPMSolver attribute names), in _scatter's order
 PERMUTED = ("x", "v", "C", "F", "tau", "ep", "_p_vol", "_p_face", "_p_mass", "_mat", "_act_bits", "_order")
 PERMUTED_TYPES = (vec3, vec3, mat3, mat3, mat3, ti.f32, ti.f32, ti.f32, ti.f32, ti.i32, ti.i32, ti.i32)
@@ -361,21 +386,6 @@ class DeviceSort:
         self.scan = Scan(G ** 3 + 1)
         self.keys = _key_kernel(arch == "cpu")  # serial on the CPU: a reproducible order
         self.spare = None
-        self.idx = None  # index(): [P] the storage slots in stencil-base order
-
-    def index(self, solver) -> None:
-        """Sort the slots, not the data: ``idx`` [P] lists the storage slots by the stencil base
-        of their particle now (and ``count`` holds each base's first entry), for the warp-run
-        transfer, which reads the particles through it.  Keys, scan and one int per particle:
-        cheap enough for every substep, where :meth:`sort` moves 40 words a particle."""
-        if self.idx is None:  # the index's launches, through Launchers (fixed arrays: no argument processing)
-            self.idx = ti.ndarray(ti.i32, self.P)
-            self._launch = SimpleNamespace(zero=Launcher(_zero), keys=Launcher(self.keys), index=Launcher(_index))
-        run = self._launch
-        run.zero(self.count)
-        run.keys(solver.x, self.key, self.rank, self.count, float(solver.dx), self.G)
-        self.scan(self.count)
-        run.index(self.key, self.rank, self.count, self.idx)
 
     def _spares(self) -> dict:
         if self.spare is None:
@@ -395,8 +405,7 @@ class DeviceSort:
             spare[n] = a
 
     def nbytes(self) -> int:
-        return (4 * (2 * self.P + self.G ** 3 + 1) + (4 * 40 * self.P if self.spare is not None else 0)
-                + (4 * self.P if self.idx is not None else 0))
+        return 4 * (2 * self.P + self.G ** 3 + 1) + (4 * 40 * self.P if self.spare is not None else 0)
 
 
 def sorted_by_base(x: np.ndarray, dx: float, G: int) -> bool:

@@ -82,8 +82,11 @@ class MPMSolver:
             (p2g_sorted.AUTO per arch).  Results equal up to float summation order.
         run_length: coarsened P2G on one grid (CUDA): particles per thread, ``"cell"``: one
             thread per stencil-base cell of the last sort, or ``"warp"``: one thread per particle,
-            runs summed across a warp's lanes (p2g_sorted.py "warp runs").
-        resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load).
+            each warp's particles sorted by base and runs summed across its lanes
+            (p2g_sorted.py "warp runs"); ``"auto"``: p2g_sorted.RUN_AUTO per arch (warp on
+            CUDA, RUN_LENGTH on the CPU).
+        resort_every: coarsened P2G: substeps between device re-sorts (0: sort only at load;
+            None: p2g_sorted.RESORT_EVERY, or RESORT_EVERY_WARP for warp runs).
         split: coarsened P2G with ``run_length`` particles per thread: threads per run (1, 3 or
             9), each summing its share of the 27 nodes (p2g_sorted.SPLITS); else unused.
         rigid_particles_per_cell: simulate each free rigid body with proxy particles, about this
@@ -93,7 +96,7 @@ class MPMSolver:
     def __init__(self, materials: Sequence[Material], *, n_grid: int = 32, domain_size: float = 1.0,
                  dynamics: Dynamics | None = None, backend: str = "cpu", labels: Sequence[int] | None = None,
                  sort_particles: bool = True, grid_mode: str = "auto", static: Sequence[StaticGeometry] = (),
-                 p2g: str = "auto", run_length: int = P2G.RUN_LENGTH, resort_every: int = P2G.RESORT_EVERY,
+                 p2g: str = "auto", run_length: int | str = "auto", resort_every: int | None = None,
                  split: int = P2G.SPLIT,
                  rigid_particles_per_cell: float | None = None):
         if not materials:
@@ -124,7 +127,11 @@ class MPMSolver:
         self.n_chunks = max(1, min(os.cpu_count() or 1, MAX_CHUNKS)) if self.private_grid else 1
         self._p2g_asked = p2g
         self.p2g = P2G.resolve(p2g, self.arch)  # again in load_particles, with the particle count
+        if run_length == "auto":
+            run_length = P2G.RUN_AUTO[self.arch]
         run_length = {"cell": P2G.CELL, "warp": P2G.WARP}.get(run_length, run_length)
+        if resort_every is None:
+            resort_every = P2G.RESORT_EVERY_WARP if run_length == P2G.WARP else P2G.RESORT_EVERY
         if not isinstance(run_length, int) or (run_length < 1 and run_length not in (P2G.CELL, P2G.WARP)) \
                 or int(resort_every) < 0:
             raise ConfigError("p2g", f"run_length must be >= 1, 'cell' or 'warp' and resort_every >= 0, got "
@@ -137,7 +144,6 @@ class MPMSolver:
         self.resort_every = int(resort_every)
         self.split = int(split)
         self._sorter = None  # coarsened P2G: the device sort (p2g_sorted.DeviceSort)
-        self._indexing = False  # warp runs: DeviceSort.index before every substep
         self._since_sort = 0
         self.sort_generation = 0  # counts device re-sorts (storage order changes)
         self.combos = tuple(sorted({m.kernel_key for m in self.materials}))
@@ -240,8 +246,8 @@ class MPMSolver:
             self.p2g = "atomic"
         self._sorting = self.p2g == "coarsened" and self._can_resort()
         run = self.run_length if self.p2g == "coarsened" and not self.private_grid else 0  # else unused: one build
-        if run in (P2G.CELL, P2G.WARP) and not self._sorting:
-            run = P2G.RUN_LENGTH  # cells and warp runs need the device sort
+        if run == P2G.CELL and not self._sorting:
+            run = P2G.RUN_LENGTH  # cells need the device sort's ranges
         spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid, p2g=self.p2g,
                       run=run, split=self.split if run > 0 else 1)
         self._k = K.build(spec)
@@ -256,16 +262,10 @@ class MPMSolver:
         self.time = 0.0
         self._sorter = None
         self._cell_start = _ndarray_from(np.array([0, self.n_particles], np.int32), ti.i32)  # read with CELL runs only
-        self._pidx = self._cell_start  # read with WARP runs only
-        self._indexing = False
         if self._sorting:
             self._sorter = P2G.DeviceSort(self.n_particles, self.n_grid, self.arch)
             self._cell_start = self._sorter.count
             self.resort()
-            if run == P2G.WARP:
-                self._indexing = True
-                self._sorter.index(self)
-                self._pidx = self._sorter.idx
 
     # ------------------------------------------------------------------ storage order
     @property
@@ -651,8 +651,6 @@ class MPMSolver:
             self._stagger = dt
         if self._sorter is not None and self.resort_every > 0 and self._since_sort >= self.resort_every:
             self.resort()
-        if self._indexing:  # warp runs: the slots sorted by this substep's bases (p2g_sorted.DeviceSort.index)
-            self._sorter.index(self)
         return math.exp(-b.damping * dt) if b.damping > 0 else 1.0
 
     def _substep_args(self, dt: float, damp: float) -> tuple:
@@ -663,7 +661,7 @@ class MPMSolver:
                 self.grid_rm, self.grid_rv, self._mbody, self._gpart, self._gbody, self._bphi, *self._bpose, self._mparams, self._mcombo, self._dyn,
                 self._lvl_phi, self._lvl_id, self._lvl_rows, self._err, self._box, float(dt), float(self.time),
                 float(self.dx), float(b.wall_margin), float(b.gravity[0]), float(b.gravity[1]), float(b.gravity[2]),
-                float(damp), self._cell_start, self._pidx)
+                float(damp), self._cell_start)
 
     def substeps(self, n: int, dt: float) -> None:
         """Advance by ``n`` substeps of ``dt`` seconds: the same as ``n`` calls of :meth:`substep`
@@ -692,8 +690,6 @@ class MPMSolver:
             m = n - done
             if self._sorter is not None and self.resort_every > 0:
                 m = min(m, self.resort_every - self._since_sort)
-            if self._indexing:
-                m = 1  # the index comes before each substep
             if self._batches is None:
                 try:
                     self._batches = _Batches(self._k, self._substep_args(dt, damp))
