@@ -199,7 +199,8 @@ def test_final_h5_float16_error_budget_and_held_frames(tmp_path):
 
 def test_final_frames_block_reads_match_single_rows(tmp_path, monkeypatch):
     """FinalFrames reads rows in blocks: any access order (forward, backward, repeated, held
-    frames) gives exactly the rows h5py reads one by one, with blocks of 1, 3 and all rows."""
+    frames) gives exactly the rows h5py reads one by one, with blocks of 1, 3 and all rows;
+    so do its views (x_view, F_minus_I), kept across block reads."""
     import physgs_steps.final_frames as ff
 
     rng = np.random.default_rng(6)
@@ -224,6 +225,13 @@ def test_final_frames_block_reads_match_single_rows(tmp_path, monkeypatch):
                 np.testing.assert_array_equal(fk, ref_f[rows[k]].astype(np.float32) + np.eye(3, dtype=np.float32))
                 xk[:] = -1.0  # a caller's change does not reach the cached block
                 assert fr.x(k)[0, 0] == ref_x[rows[k]][0, 0]
+            # the render stage's no-copy reads: views of the stored rows (F - I as stored, float16),
+            # still the right rows after later reads have replaced the block they came from
+            views = [(k, fr.x_view(k), fr.F_minus_I(k)) for k in order]
+            for k, xv, dv in views:
+                assert dv.dtype == np.float16
+                np.testing.assert_array_equal(xv, ref_x[rows[k]])
+                np.testing.assert_array_equal(dv, ref_f[rows[k]])
 
 
 # ---------------------------------------------------------------- final_sim's per-frame work (#18)

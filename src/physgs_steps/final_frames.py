@@ -334,6 +334,16 @@ class FinalFrames:
         """[M, 3] float32 positions of frame t."""
         return self._block(self.row(t))[0].copy()
 
+    def x_view(self, t: int) -> np.ndarray:
+        """[M, 3] float32 positions of frame t: a view into the block of rows read with it (no
+        copy; do not write to it)."""
+        return self._block(self.row(t))[0]
+
+    def F_minus_I(self, t: int) -> np.ndarray:
+        """[M, 3, 3] float16 ``F - I`` of frame t as stored: a view into the block of rows read
+        with it (no copy; do not write to it). ``F(t)`` is this in float32 plus the identity."""
+        return self._block(self.row(t))[1]
+
     def F(self, t: int) -> np.ndarray:
         """[M, 3, 3] float32 deformation gradients of frame t (within the float16 error budget)."""
         return self._block(self.row(t))[1].astype(np.float32) + np.eye(3, dtype=np.float32)

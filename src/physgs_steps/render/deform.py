@@ -241,7 +241,8 @@ def check_frame(frame: int, x: np.ndarray | torch.Tensor, F: np.ndarray | torch.
 
     Args:
         frame: frame number (for the message).
-        x: [Nv, 3] positions; F: [Nv, 3, 3] deformation gradients.
+        x: [Nv, 3] positions; F: [Nv, 3, 3] deformation gradients, or F - I (the render stage
+            passes final.h5's float16 F - I: non-finite exactly where F is).
         policy: ``error`` raises :class:`RenderError`; ``hide`` returns the [Nv] bool mask of bad rows.
     Returns:
         None when every row is finite, else the mask (policy ``hide``).

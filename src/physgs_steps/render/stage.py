@@ -223,7 +223,9 @@ def deform_states(states: list[tuple], smap: SourceMap, cmap: CarrierMap, rest: 
     """Gaussians of B stored states, the states without non-finite rows in one pass.
 
     Args:
-        states: B (x [M, 3], F [M, 3, 3] sim-frame arrays, [M] bool non-finite rows or None).
+        states: B (x [M, 3] float32, F - I [M, 3, 3] as final.h5 stores it (float16), [M] bool
+            non-finite rows or None), sim frame. The stacks go to the device as they are, and F
+            = (F - I) + I is formed there in float32 (the values of FinalFrames.F, bit for bit).
         smap, cmap: the map to the source frame and the carrier; rest: the rest gaussians.
         with_rotation: polar rotations for view-dependent SH; full: ``covers_all(cmap.rows, N)``.
     Returns:
@@ -236,7 +238,8 @@ def deform_states(states: list[tuple], smap: SourceMap, cmap: CarrierMap, rest: 
     per = max(1, DEFORM_ROWS // max(1, len(cmap.rows)))  # frames a stack: DEFORM_ROWS gaussian rows at most
     for group in _chunks(plain, per) + [[b] for b, st in enumerate(states) if st[2] is not None]:
         x = torch.from_numpy(np.stack([states[b][0] for b in group])).to(dev, torch.float64)  # [B, M, 3]
-        F = torch.from_numpy(np.stack([states[b][1] for b in group])).to(dev)  # [B, M, 3, 3]
+        dF = torch.from_numpy(np.stack([states[b][1] for b in group])).to(dev)  # [B, M, 3, 3] F - I (float16)
+        F = dF.float() + torch.eye(3, device=dev)  # [B, M, 3, 3] float32
         xs, Fs = cmap.apply(smap.points(x).float(), smap.linear(F))  # [B, Ns, 3], [B, Ns, 3, 3] source frame
         hide = None if states[group[0]][2] is None else cmap.hidden(torch.as_tensor(states[group[0]][2]))  # [Ns]
         out = deform_frames(rest, cmap.rows, xs, Fs, with_rotation, None if hide is None else hide[None], full)
@@ -406,17 +409,19 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                     read = []  # (j, (x, F, non-finite rows))
                     for j in part:
                         t1 = time.perf_counter()
-                        x, F = frames.x(ids[j]), frames.F(ids[j])
+                        # views of the stored row (no copies: deform_states stacks them); F - I in
+                        # float16 as stored, non-finite exactly where F is
+                        x, dF = frames.x_view(ids[j]), frames.F_minus_I(ids[j])
                         t_read += time.perf_counter() - t1
                         try:
-                            bad = check_frame(ids[j], x, F, rcfg["on_nonfinite"])
+                            bad = check_frame(ids[j], x, dF, rcfg["on_nonfinite"])
                         except RenderError as e:  # raised once the frames before it are checked
                             failed = e
                             break
                         if bad is not None:
                             log.warning("frame %d: %d stored particles with NaN/inf: the gaussians they carry are hidden",
                                         ids[j], int(bad.sum()))
-                        read.append((j, (x, F, bad)))
+                        read.append((j, (x, dF, bad)))
                     if read:
                         gl, objs, hides = deform_states([st for _, st in read], smap, cmap, rest, degree > 0, full)
                         for (j, _), g, hide in zip(read, gl, hides):
