@@ -331,8 +331,8 @@ class FinalFrames:
         return self._bx[r - b0], self._bf[r - b0]
 
     def x(self, t: int) -> np.ndarray:
-        """[M, 3] float32 positions of frame t."""
-        return self._block(self.row(t))[0].copy()
+        """[M, 3] float32 positions of frame t (a copy of :meth:`x_view`)."""
+        return self.x_view(t).copy()
 
     def x_view(self, t: int) -> np.ndarray:
         """[M, 3] float32 positions of frame t: a view into the block of rows read with it (no
@@ -346,7 +346,7 @@ class FinalFrames:
 
     def F(self, t: int) -> np.ndarray:
         """[M, 3, 3] float32 deformation gradients of frame t (within the float16 error budget)."""
-        return self._block(self.row(t))[1].astype(np.float32) + np.eye(3, dtype=np.float32)
+        return self.F_minus_I(t).astype(np.float32) + np.eye(3, dtype=np.float32)
 
     def attr(self, name: str):
         """A JSON attribute decoded (None when absent)."""

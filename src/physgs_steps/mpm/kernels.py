@@ -413,7 +413,7 @@ def build(spec: Spec) -> SimpleNamespace:
             ti.atomic_add(err[0], 1)
             base = ti.min(ti.max(base, 0), G - 3)
         fx = xp * inv_dx - ti.cast(base, ti.f32)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        w = P2G.bspline(fx)
         return base, fx, w
 
     @ti.func
@@ -753,7 +753,7 @@ def build(spec: Spec) -> SimpleNamespace:
         mass = ti.simt.warp.shfl_sync_f32(mask, mass, src)
         head, ok = P2G.warp_segments(key, lane)
         base = ti.Vector([key // (G * G), (key // G) % G, key % G])
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        w = P2G.bspline(fx)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             dpos = (ti.Vector([i, j, k], dt=ti.f32) - fx) * dx
             weight = w[i][0] * w[j][1] * w[k][2]
@@ -1402,7 +1402,7 @@ def _stencil_clamped(xp, inv_dx, G):
     base = ti.cast(ti.floor(xp * inv_dx - 0.5), ti.i32)
     base = ti.min(ti.max(base, 0), G - 3)
     fx = xp * inv_dx - ti.cast(base, ti.f32)
-    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+    w = P2G.bspline(fx)
     return base, fx, w
 
 

@@ -35,7 +35,6 @@ import numpy as np
 import taichi as ti
 
 from ..errors import ConfigError
-from .backend import Launcher
 
 P2G_MODES = ("auto", "atomic", "coarsened")
 AUTO = {"cpu": "atomic", "cuda": "coarsened"}  # what ``auto`` picks per arch
@@ -195,6 +194,13 @@ def _pick(a, b, c, i):
 
 
 @ti.func
+def bspline(fx):
+    """The quadratic B-spline weights of a particle ``fx`` [3] cells from its stencil base node:
+    (w0, w1, w2), one [3] vector per offset (docs/CONTRACTS.md "MPM step")."""
+    return 0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2
+
+
+@ti.func
 def acc_zero(split: ti.template()):
     """The accumulator of one run (or of its part ``split``): [27 / split, 4] (momentum xyz,
     mass) per stencil node of the part, node n = 9i + 3j + k of its own offsets."""
@@ -205,9 +211,8 @@ def acc_zero(split: ti.template()):
 def acc_add(acc: ti.template(), split: ti.template(), s, fx, dx, mv, affine, mass):
     """Add one particle's APIC contributions (stencil offset ``fx`` [3] in cells from the base
     node, momentum ``mv``, affine matrix ``affine``, ``mass``) to the part ``s`` of ``split`` of
-    the run accumulator ``acc`` [27 / split, 4] in place (quadratic B-spline weights, as
-    kernels._stencil)."""
-    w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+    the run accumulator ``acc`` [27 / split, 4] in place."""
+    w = bspline(fx)
     sx, sy = _slab_offsets(split, s)
     # the part's own nodes: all 27 (split 1), one x slab (3), one (x, y) column (9)
     for i, j, k in ti.static(ti.ndrange(3 if split == 1 else 1, 1 if split == 9 else 3, 3)):
@@ -312,8 +317,7 @@ def _block_scan(a: I1, n: ti.i32, B: ti.i32, offs: I1):
 
 
 class Scan:
-    """In-place exclusive prefix sum of an int32 ndarray of length ``n`` (buffers kept; each
-    launch site through a backend.Launcher: no per-call argument processing in the re-sort)."""
+    """In-place exclusive prefix sum of an int32 ndarray of length ``n`` (buffers kept)."""
 
     def __init__(self, n: int, block: int = SCAN_BLOCK):
         self.n, self.B = int(n), int(block)
@@ -324,18 +328,15 @@ class Scan:
             self.levels.append(ti.ndarray(ti.i32, m))
         self.zero = ti.ndarray(ti.i32, 1)
         self.zero.fill(0)
-        n_lvl = len(self.levels)
-        self._sums = [Launcher(_block_sums) for _ in range(n_lvl)]
-        self._scans = [Launcher(_block_scan) for _ in range(n_lvl + 1)]
 
     def __call__(self, a) -> None:
         arrays = [a] + self.levels
         sizes = [self.n] + [arr.shape[0] for arr in self.levels]
         for lvl in range(len(self.levels)):
-            self._sums[lvl](arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
-        self._scans[-1](arrays[-1], sizes[-1], max(self.B, sizes[-1]), self.zero)
+            _block_sums(arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
+        _block_scan(arrays[-1], sizes[-1], max(self.B, sizes[-1]), self.zero)
         for lvl in reversed(range(len(self.levels))):
-            self._scans[lvl](arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
+            _block_scan(arrays[lvl], sizes[lvl], self.B, arrays[lvl + 1])
 
 
 def exclusive_scan(a) -> None:

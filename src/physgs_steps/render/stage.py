@@ -406,7 +406,7 @@ def _render_all(inputs, outputs, rcfg, ccfg, renderer, backend, why, smap, scene
                 own = [j for j in range(len(ids)) if rows[j] != before[j]]
                 states, failed = {}, None
                 for part in _chunks(own, 1 if per_frame else max(len(own), 1)):
-                    read = []  # (j, (x, F, non-finite rows))
+                    read = []  # (j, (x, F - I, non-finite rows))
                     for j in part:
                         t1 = time.perf_counter()
                         # views of the stored row (no copies: deform_states stacks them); F - I in
