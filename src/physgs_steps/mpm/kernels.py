@@ -1407,17 +1407,20 @@ def _stencil_clamped(xp, inv_dx, G):
 
 
 @ti.kernel
-def affine_transfer(x: V1, v: V1, C: M1, p_mass: S1, grid_v: V4, grid_m: S4, dx: ti.f32):
+def affine_transfer(x: V1, v: V1, C: M1, p_mass: S1, grid_v: V4, grid_m: S4, dx: ti.f32, serial: ti.template()):
     """One APIC round trip of the particle velocity field at fixed positions: P2G of the
     momenta ``m (v + C dpos)`` into chunk 0 of the grid, then ``C = 4 / dx^2 sum w v_i dpos^T``.
     ``v`` is left unchanged.  Repeated, C converges to the velocity gradient the APIC transfer
-    reproduces (exact for affine velocity fields: Jiang et al. 2015)."""
+    reproduces (exact for affine velocity fields: Jiang et al. 2015).  ``serial`` (the CPU):
+    the P2G in one thread, so that its float sums, and thus C, are the same in every run
+    (with threads and atomics they differed by up to 1.5e-5 between runs)."""
     inv_dx = 1.0 / dx
     G = grid_m.shape[1]
     for I in ti.grouped(grid_m):
         grid_v[I] = ti.Vector.zero(ti.f32, 3)
         grid_m[I] = 0.0
-    for p in x:
+    ti.loop_config(serialize=serial)
+    for p in range(x.shape[0]):
         base, fx, w = _stencil_clamped(x[p], inv_dx, G)
         mass = p_mass[p]
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):

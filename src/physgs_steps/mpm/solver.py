@@ -406,7 +406,8 @@ class MPMSolver:
         current velocities (P2G/G2P round trips at fixed positions, velocities unchanged)."""
         self._require_particles()
         for _ in range(iterations):
-            K.affine_transfer(self.x, self.v, self.C, self._p_mass, self.grid_v, self.grid_m, float(self.dx))
+            K.affine_transfer(self.x, self.v, self.C, self._p_mass, self.grid_v, self.grid_m, float(self.dx),
+                              self.arch == "cpu")  # CPU: reproducible sums (one thread)
         self._box_full()  # it wrote the whole grid
 
     def set_materials(self, materials: Sequence[Material]) -> None:
