@@ -17,7 +17,8 @@ stencil base summed before one write per run; device re-sort by stencil base; on
 default warp runs, on the CPU runs of 16 consecutive particles in registers), with
 options ``:K=<particles per thread>`` (``K=cell``: a thread per cell of the last sort; ``K=warp``:
 a thread per particle, runs summed across a warp's lanes, CUDA only),
-``:N=<substeps between re-sorts>``, ``:S=1|3|9`` (threads sharing a run's 27 nodes), ``:grid=private|atomic`` (CPU: per-thread grids, the default there, or one grid with atomics
+``:N=<substeps between re-sorts>``, ``:st=0|1`` (CUDA: G2P's stores staged through shared
+memory, the default there, or not; src/physgs_steps/mpm/staged.py), ``:S=1|3|9`` (threads sharing a run's 27 nodes), ``:grid=private|atomic`` (CPU: per-thread grids, the default there, or one grid with atomics
 as on CUDA).  A table per size gives each variant's rate and its ratio to ``atomic``.
 
 Particles fill a box in random order (as gaussians come from a .ply); the textbook kernel gets
@@ -59,10 +60,12 @@ def parse_variant(text: str) -> dict:
             kw["resort_every"] = int(value)
         elif key == "S":
             kw["split"] = int(value)
+        elif key == "st" and value in ("0", "1"):
+            kw["staged"] = value == "1"
         elif key == "grid" and value in ("private", "atomic"):
             kw["grid_mode"] = value
         else:
-            raise SystemExit(f"--p2g {text!r}: unknown option {o!r} (K=<int>, N=<int>, S=1|3|9, grid=private|atomic)")
+            raise SystemExit(f"--p2g {text!r}: unknown option {o!r} (K=<int>, N=<int>, S=1|3|9, st=0|1, grid=private|atomic)")
     return kw
 
 

@@ -142,6 +142,10 @@ def test_exclusive_scan_and_mode_errors():
         MPMSolver([JELLY], n_grid=32, backend="cpu", p2g="coarsened", split=2)
     with pytest.raises(ConfigError, match="needs CUDA"):
         MPMSolver([JELLY], n_grid=32, backend="cpu", p2g="coarsened", run_length="warp")
+    with pytest.raises(ConfigError, match="staged"):  # shared memory and a block barrier: CUDA only
+        MPMSolver([JELLY], n_grid=32, backend="cpu", staged=True)
+    s = _solver("atomic")
+    assert s.staged is False  # the CPU stores directly
 
 
 def test_batched_substeps_resort_where_single_substeps_do():
@@ -215,5 +219,45 @@ def test_warp_runs_match_atomic_on_cuda():
                 assert np.abs(a[k] - b[k]).max() < tol * scale, k
             p1 = (m[:, None] * b["v"]).sum(0)
             assert np.abs(p1 - p0).max() < 1e-4 * np.abs(m[:, None] * v).sum(0).max()
+    finally:
+        ensure_taichi("cpu")
+
+
+@pytest.mark.gpu
+def test_staged_stores_match_direct_stores_on_cuda():
+    """G2P's stores staged through shared memory (staged.py, CUDA's default without rigid
+    materials) against direct stores: the same state (x, v, C, F and the stress) after one
+    substep and after 40, with the atomic and the warp-run transfers; the particle count is
+    not a whole number of blocks (a last block with empty threads)."""
+    torch = pytest.importorskip("torch")
+    if not torch.cuda.is_available():
+        pytest.skip("CUDA not available")
+    from physgs_steps.mpm import staged as ST
+    from physgs_steps.mpm.backend import ensure_taichi
+
+    def cuda_solver(mode, staged):
+        x, vol, mat, v = _two_blocks()
+        s = MPMSolver([JELLY, SOFT], n_grid=32, dynamics=Dynamics.free(gravity=(0, 0, -9.8)), backend="cuda",
+                      p2g=mode, staged=staged)
+        s.set_particles(x, vol, mat)
+        s.set_state(x, v, np.zeros((len(x), 3, 3)), np.broadcast_to(np.eye(3), (len(x), 3, 3)))
+        return s
+
+    try:
+        for mode in ("atomic", "coarsened"):
+            plain, staged = cuda_solver(mode, False), cuda_solver(mode, None)
+            assert staged.staged and not plain.staged
+            assert staged.n_particles % ST.STAGE_BLOCK != 0
+            for n in (1, 39):
+                for s in (plain, staged):
+                    s.substeps(n, 2e-4)
+                a, b = plain.get_state(), staged.get_state()
+                # the transfers' float atomics add in any order: not bit for bit
+                for k, tol in (("x", 1e-6), ("v", 2e-5), ("C", 1e-4), ("F", 1e-5)):
+                    scale = max(1.0, float(np.abs(a[k]).max()))
+                    assert np.abs(a[k] - b[k]).max() < tol * scale, (mode, n, k)
+                ta, tb = plain.get_stress(), staged.get_stress()
+                assert np.abs(ta - tb).max() < 1e-3 * np.abs(ta).max(), (mode, n)
+                assert np.abs(tb).max() > 0  # stress stored, not left at zero
     finally:
         ensure_taichi("cpu")

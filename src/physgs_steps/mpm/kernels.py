@@ -68,6 +68,7 @@ import taichi as ti
 
 from . import materials as M
 from . import p2g_sorted as P2G
+from . import staged as ST
 
 from .colliders import FRINGE_SOFT, FRONT_BAND, GHOST_BAND, HELD_REACH, MIRROR_MASS, TOUCH
 
@@ -106,6 +107,7 @@ class Spec(NamedTuple):
     p2g: str = "atomic"  # atomic: one add per particle and node; coarsened: one per run of equal bases (p2g_sorted.py)
     run: int = 0         # coarsened P2G on one grid: particles per thread; P2G.CELL: per sorted cell; 0: unused
     split: int = 1       # coarsened P2G with `run` particles per thread: threads per run (P2G.SPLITS), each its share of the 27 nodes
+    staged: bool = False  # CUDA without rigid bodies: G2P stores the new state through shared memory (staged.py)
 
 
 @ti.func
@@ -398,6 +400,9 @@ def build(spec: Spec) -> SimpleNamespace:
     if split != 1 and not (coarsened and not private_grid and run > 0):
         raise ValueError(f"Spec.split {split} needs coarsened P2G with run > 0 on one grid")
     runfl = P2G.make_flush(private_grid, split)
+    staged = spec.staged
+    if staged and (private_grid or rigid_cid >= 0):
+        raise ValueError("Spec.staged needs one grid (CUDA) and no rigid material")
     two_pi = 2.0 * math.pi
     col = collider_funcs(spec.counts, spec.boundary, spec.static)
     n_obst, n_slots = col.n_obst, col.n_slots
@@ -767,6 +772,123 @@ def build(spec: Spec) -> SimpleNamespace:
                 ti.atomic_add(grid_m[0, base[0] + i, base[1] + j, base[2] + k], sm)
 
     @ti.func
+    def _flip_momentum(p, c, x: ti.template(), v: ti.template(), C: ti.template(), p_mass: ti.template(),
+                       grid_o: ti.template(), err: ti.template(), dx, inv_dx, G):
+        """FLIP materials' P2G of particle p's momentum m (v + C dpos) alone into grid_o[c]."""
+        base, fx, w = _stencil(x[p], inv_dx, G, err)
+        mass = p_mass[p]
+        mv = mass * v[p]
+        mC = mass * C[p]
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, ti.f32) - fx) * dx
+            node = base + offset
+            if ti.static(private_grid):  # this chunk's own grid: no atomic needed
+                grid_o[c, node[0], node[1], node[2]] = grid_o[c, node[0], node[1], node[2]] + \
+                    (w[i][0] * w[j][1] * w[k][2]) * (mv + mC @ dpos)
+            else:
+                grid_o[0, node[0], node[1], node[2]] += (w[i][0] * w[j][1] * w[k][2]) * (mv + mC @ dpos)
+
+    @ti.func
+    def _g2p_particle(p, x: ti.template(), F: ti.template(), v: ti.template(), ep: ti.template(), mat: ti.template(),
+                      grid_v: ti.template(), grid_m: ti.template(), grid_b: ti.template(), grid_o: ti.template(),
+                      grid_r: ti.template(), gbody: ti.template(), bphi: ti.template(), body_c: ti.template(),
+                      body_R: ti.template(), mparams: ti.template(), mcombo: ti.template(), dyn: ti.template(),
+                      lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), dt, t,
+                      dx, inv_dx, G, L, wall):
+        """G2P of particle p (reads the grid's boundary field grid_b): its new position, velocity,
+        C, F after the return map and the stress of that F, its tearing strain, and whether F
+        and tau are to be stored (0 for a rigid particle: rigid.py's scatter sets them)."""
+        xp = x[p]
+        m = mat[p]
+        rigid = _is_rigid(m, mcombo)
+        held = 0
+        hv = ti.Vector.zero(ti.f32, 3)
+        if ti.static(n_cub > 0):
+            if rigid == 0:
+                held, hv = _held(xp, t, dyn)
+        base, fx, w = _stencil(xp, inv_dx, G, err)
+        new_v = ti.Vector.zero(ti.f32, 3)
+        new_C = ti.Matrix.zero(ti.f32, 3, 3)
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, ti.f32) - fx) * dx
+            node = base + offset
+            g_v = grid_b[node[0], node[1], node[2]]
+            if ti.static(rigid_cid >= 0):
+                if rigid == 1:  # the field of the body owning the node (boundaries: rigid.py)
+                    o = grid_r[0, node[0], node[1], node[2]]
+                    if o != 0:
+                        g_v = _body_field(ti.abs(o) - 1, node, dx, gbody)
+                    else:
+                        g_v = grid_v[0, node[0], node[1], node[2]]
+            weight = w[i][0] * w[j][1] * w[k][2]
+            new_v += weight * g_v
+            new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
+        x_new = xp + dt * new_v
+        if ti.static(any_flip):
+            fr = mparams[m, q_flip]
+            if rigid == 0 and fr > 0.0:
+                # AFLIP (Fei et al. 2021): the APIC velocity plus the particle's own deviation
+                # from the pre-force grid field (materials.FLIP_RATIO); the particle still
+                # moves with, and strains by, the grid field
+                v_old = ti.Vector.zero(ti.f32, 3)
+                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+                    node = base + ti.Vector([i, j, k])
+                    mn = grid_m[0, node[0], node[1], node[2]]
+                    if mn > 0.0:
+                        v_old += (w[i][0] * w[j][1] * w[k][2] / mn) * grid_o[0, node[0], node[1], node[2]]
+                new_v += fr * (v[p] - v_old)
+        if held == 1:
+            # inside a cuboid: the particle stays with the cuboid, but carries the field the
+            # ghost nodes extend into it (so stress and momentum stay continuous at the face)
+            x_new = xp + dt * hv
+        elif rigid == 0:  # obstacles: back onto the surface, no inward velocity
+            for s in range(n_obst):
+                active, phi, n, vc, kind, fric = col.slot(s, x_new, ti.Vector([0, 0, 0]), False, t, dx, L,
+                                                          wall, dyn, lvl_phi, lvl_id, lvl_rows)
+                if active == 1 and phi < 0.0:
+                    x_new -= phi * n
+                    if kind < 0.5:
+                        new_v = vc
+                    else:
+                        un = (new_v - vc).dot(n)
+                        if un < 0.0:
+                            new_v -= un * n
+            if ti.static(rigid_cid >= 0):
+                if bphi.shape[1] > 1:  # free bodies' surfaces (separating), as the obstacles'
+                    for b in range(gbody.shape[0]):
+                        phi_b, n_b = _body_phi(b, x_new, bphi, body_c, body_R, gbody, dx)
+                        if phi_b < 0.0:
+                            x_new -= phi_b * n_b
+                            c0 = ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
+                            Vb = ti.Vector([gbody[b, 3], gbody[b, 4], gbody[b, 5]], dt=ti.f64)
+                            wb = ti.Vector([gbody[b, 6], gbody[b, 7], gbody[b, 8]], dt=ti.f64)
+                            vc = ti.cast(Vb + wb.cross(ti.cast(x_new, ti.f64) - c0), ti.f32)
+                            un = (new_v - vc).dot(n_b)
+                            if un < 0.0:
+                                new_v -= un * n_b
+        F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
+        if held == 1:
+            # a held particle strains with the field the ghost nodes extend into the box (its
+            # stress keeps the stress continuous across the face) but transfers the holder's
+            # motion, so its momentum does not feed back into the ghost nodes' mirror samples
+            new_v = hv
+            new_C = ti.Matrix.zero(ti.f32, 3, 3)
+        F_new = F_trial
+        tau_new = ti.Matrix.zero(ti.f32, 3, 3)
+        ep_p = 0.0
+        if rigid == 0:  # a rigid particle's F and tau are set by rigid.py's scatter after this kernel
+            q = _qrow(mparams, m)
+            cid = 0
+            if ti.static(n_combo > 1):
+                cid = mcombo[m]
+            if ti.static(any_fracture):
+                ep_p = ep[p]
+            F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
+        return x_new, new_v, new_C, F_new, tau_new, ep_p, 1 - rigid
+
+    @ti.func
     def _substep(x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), tau: ti.template(),
                  ep: ti.template(), p_vol: ti.template(), p_face: ti.template(), p_mass: ti.template(),
                  mat: ti.template(), act_bits: ti.template(), grid_v: ti.template(), grid_m: ti.template(),
@@ -842,8 +964,7 @@ def build(spec: Spec) -> SimpleNamespace:
                     grid_m[c, i, j, k] = 0.0
                     grid_c[c, i, j, k] = 0.0
                     if ti.static(any_flip):
-                        if c == 0:
-                            grid_o[i, j, k] = ti.Vector.zero(ti.f32, 3)
+                        grid_o[c, i, j, k] = ti.Vector.zero(ti.f32, 3)
                     if ti.static(rigid_cid >= 0):
                         grid_r[c, i, j, k] = 0
                         grid_rm[c, i, j, k] = 0.0
@@ -890,17 +1011,16 @@ def build(spec: Spec) -> SimpleNamespace:
             if ti.static(any_flip):
                 # FLIP materials (materials.FLIP_RATIO): the momenta m (v + C dpos) alone, before the
                 # stress and body-force impulses, so that G2P can tell each particle's own deviation
-                # from the field the grid had before this substep's forces
-                for p in x:
-                    base, fx, w = _stencil(x[p], inv_dx, G, err)
-                    mass = p_mass[p]
-                    mv = mass * v[p]
-                    mC = mass * C[p]
-                    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                        offset = ti.Vector([i, j, k])
-                        dpos = (ti.cast(offset, ti.f32) - fx) * dx
-                        node = base + offset
-                        grid_o[node[0], node[1], node[2]] += (w[i][0] * w[j][1] * w[k][2]) * (mv + mC @ dpos)
+                # from the field the grid had before this substep's forces; on the CPU into each
+                # chunk's own grid, summed in the grid update as the momenta are (a fixed order:
+                # one grid for all threads gave different sums in every run)
+                if ti.static(private_grid):
+                    for c in range(n_chunks):
+                        for p in range(c * P // n_chunks, (c + 1) * P // n_chunks):
+                            _flip_momentum(p, c, x, v, C, p_mass, grid_o, err, dx, inv_dx, G)
+                else:
+                    for p in range(P):
+                        _flip_momentum(p, 0, x, v, C, p_mass, grid_o, err, dx, inv_dx, G)
             # grid update, part 1: the chunks' grids summed into chunk 0, velocity, gravity, damping
             for qc in range(n_nodes):  # the box's (x, y) columns, z inside (CUDA: nodes; module docs)
                 i, j, k0, k1 = _box_run(box, 0, qc)
@@ -913,6 +1033,11 @@ def build(spec: Spec) -> SimpleNamespace:
                             m += grid_m[c, i, j, k]
                             mom += grid_v[c, i, j, k]
                             touch += grid_c[c, i, j, k]
+                        if ti.static(any_flip):
+                            mo = grid_o[0, i, j, k]
+                            for c in range(1, n_chunks):
+                                mo += grid_o[c, i, j, k]
+                            grid_o[0, i, j, k] = mo
                     grid_c[0, i, j, k] = touch
                     if ti.static(rigid_cid >= 0):
                         owner = grid_r[0, i, j, k]
@@ -1096,103 +1221,40 @@ def build(spec: Spec) -> SimpleNamespace:
                     for q in ti.static(range(6)):
                         gbody[b, 18 + q] = acc[q]
             # G2P, F update, return map, stress of the new F; boundaries on deformable particles
-            for p in range(P):
-                xp = x[p]
-                m = mat[p]
-                rigid = _is_rigid(m, mcombo)
-                held = 0
-                hv = ti.Vector.zero(ti.f32, 3)
-                if ti.static(n_cub > 0):
-                    if rigid == 0:
-                        held, hv = _held(xp, t, dyn)
-                base, fx, w = _stencil(xp, inv_dx, G, err)
-                new_v = ti.Vector.zero(ti.f32, 3)
-                new_C = ti.Matrix.zero(ti.f32, 3, 3)
-                for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                    offset = ti.Vector([i, j, k])
-                    dpos = (ti.cast(offset, ti.f32) - fx) * dx
-                    node = base + offset
-                    g_v = grid_b[node[0], node[1], node[2]]
-                    if ti.static(rigid_cid >= 0):
-                        if rigid == 1:  # the field of the body owning the node (boundaries: rigid.py)
-                            o = grid_r[0, node[0], node[1], node[2]]
-                            if o != 0:
-                                g_v = _body_field(ti.abs(o) - 1, node, dx, gbody)
-                            else:
-                                g_v = grid_v[0, node[0], node[1], node[2]]
-                    weight = w[i][0] * w[j][1] * w[k][2]
-                    new_v += weight * g_v
-                    new_C += (4.0 * inv_dx * inv_dx * weight) * g_v.outer_product(dpos)
-                x_new = xp + dt * new_v
-                if ti.static(any_flip):
-                    fr = mparams[m, q_flip]
-                    if rigid == 0 and fr > 0.0:
-                        # AFLIP (Fei et al. 2021): the APIC velocity plus the particle's own deviation
-                        # from the pre-force grid field (materials.FLIP_RATIO); the particle still
-                        # moves with, and strains by, the grid field
-                        v_old = ti.Vector.zero(ti.f32, 3)
-                        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-                            node = base + ti.Vector([i, j, k])
-                            mn = grid_m[0, node[0], node[1], node[2]]
-                            if mn > 0.0:
-                                v_old += (w[i][0] * w[j][1] * w[k][2] / mn) * grid_o[node[0], node[1], node[2]]
-                        new_v += fr * (v[p] - v_old)
-                if held == 1:
-                    # inside a cuboid: the particle stays with the cuboid, but carries the field the
-                    # ghost nodes extend into it (so stress and momentum stay continuous at the face)
-                    x_new = xp + dt * hv
-                elif rigid == 0:  # obstacles: back onto the surface, no inward velocity
-                    for s in range(n_obst):
-                        active, phi, n, vc, kind, fric = col.slot(s, x_new, ti.Vector([0, 0, 0]), False, t, dx, L,
-                                                                  wall, dyn, lvl_phi, lvl_id, lvl_rows)
-                        if active == 1 and phi < 0.0:
-                            x_new -= phi * n
-                            if kind < 0.5:
-                                new_v = vc
-                            else:
-                                un = (new_v - vc).dot(n)
-                                if un < 0.0:
-                                    new_v -= un * n
-                    if ti.static(rigid_cid >= 0):
-                        if bphi.shape[1] > 1:  # free bodies' surfaces (separating), as the obstacles'
-                            for b in range(gbody.shape[0]):
-                                phi_b, n_b = _body_phi(b, x_new, bphi, body_c, body_R, gbody, dx)
-                                if phi_b < 0.0:
-                                    x_new -= phi_b * n_b
-                                    c0 = ti.Vector([gbody[b, 0], gbody[b, 1], gbody[b, 2]], dt=ti.f64)
-                                    Vb = ti.Vector([gbody[b, 3], gbody[b, 4], gbody[b, 5]], dt=ti.f64)
-                                    wb = ti.Vector([gbody[b, 6], gbody[b, 7], gbody[b, 8]], dt=ti.f64)
-                                    vc = ti.cast(Vb + wb.cross(ti.cast(x_new, ti.f64) - c0), ti.f32)
-                                    un = (new_v - vc).dot(n_b)
-                                    if un < 0.0:
-                                        new_v -= un * n_b
-                F_trial = (ti.Matrix.identity(ti.f32, 3) + dt * new_C) @ F[p]
-                if held == 1:
-                    # a held particle strains with the field the ghost nodes extend into the box (its
-                    # stress keeps the stress continuous across the face) but transfers the holder's
-                    # motion, so its momentum does not feed back into the ghost nodes' mirror samples
-                    new_v = hv
-                    new_C = ti.Matrix.zero(ti.f32, 3, 3)
-                v[p] = new_v
-                C[p] = new_C
-                x[p] = x_new
-                if rigid == 0:  # a rigid particle's F and tau are set by rigid.py's scatter after this kernel
-                    q = _qrow(mparams, m)
-                    cid = 0
-                    if ti.static(n_combo > 1):
-                        cid = mcombo[m]
-                    ep_p = 0.0
-                    if ti.static(any_fracture):
-                        ep_p = ep[p]
-                    F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
-                    F[p] = F_new
-                    tau[p] = tau_new
-                    if ti.static(any_fracture):
-                        ep[p] = ep_p
+            if ti.static(staged):
+                # the new state through shared memory (module docs "Staged stores"): a block's
+                # particles are contiguous, so each store instruction writes whole sectors
+                ti.loop_config(block_dim=ST.STAGE_BLOCK)
+                for p in range((P + ST.STAGE_BLOCK - 1) // ST.STAGE_BLOCK * ST.STAGE_BLOCK):
+                    sh = ti.simt.block.SharedArray((ST.STAGE_BLOCK * ST.STAGE_WORDS,), ti.f32)
+                    tid = p % ST.STAGE_BLOCK
+                    if p < P:
+                        x_new, new_v, new_C, F_new, tau_new, ep_p, _upd = _g2p_particle(
+                            p, x, F, v, ep, mat, grid_v, grid_m, grid_b, grid_o, grid_r, gbody, bphi, body_c, body_R, mparams, mcombo,
+                            dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+                        ST.stage_put(sh, tid, x_new, new_v, new_C, F_new, tau_new)
+                        if ti.static(any_fracture):
+                            ep[p] = ep_p
+                    ti.simt.block.sync()
+                    ST.stage_write(sh, tid, p - tid, P, x, v, C, F, tau)
+                    ti.simt.block.sync()  # all written: a thread's next slot (grid-stride loop) may refill sh
+            else:
+                for p in range(P):
+                    x_new, new_v, new_C, F_new, tau_new, ep_p, upd = _g2p_particle(
+                        p, x, F, v, ep, mat, grid_v, grid_m, grid_b, grid_o, grid_r, gbody, bphi, body_c, body_R, mparams, mcombo,
+                        dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
+                    v[p] = new_v
+                    C[p] = new_C
+                    x[p] = x_new
+                    if upd == 1:
+                        F[p] = F_new
+                        tau[p] = tau_new
+                        if ti.static(any_fracture):
+                            ep[p] = ep_p
 
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1, act_bits: I1,
-                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4, grid_rm: S4, grid_rv: V4,
+                grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V4, grid_r: I4, grid_rm: S4, grid_rv: V4,
                 mbody: I1, gpart: D3, gbody: D2, bphi: S4, body_c: V1d, body_R: M1d, mparams: S2, mcombo: I1, dyn: S2,
                 lvl_phi: S3, lvl_id: I3, lvl_rows: S2, err: I1, box: I2, dt: ti.f32, t: ti.f32, dx: ti.f32,
                 wall: ti.f32, gx: ti.f32, gy: ti.f32, gz: ti.f32, damp: ti.f32, cell_start: I1, part: ti.template()):
@@ -1221,7 +1283,7 @@ def build(spec: Spec) -> SimpleNamespace:
 
             @ti.kernel
             def substep_r(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1,
-                          act_bits: I1, grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V3, grid_r: I4,
+                          act_bits: I1, grid_v: V4, grid_m: S4, grid_c: S4, grid_b: V3, grid_o: V4, grid_r: I4,
                           grid_rm: S4, grid_rv: V4, mbody: I1, gpart: D3, gbody: D2, bphi: S4, body_c: V1d,
                           body_R: M1d, mparams: S2, mcombo: I1, dyn: S2, lvl_phi: S3, lvl_id: I3, lvl_rows: S2,
                           err: I1, box: I2, dt: ti.f32, ts: Ts, dx: ti.f32, wall: ti.f32, gx: ti.f32, gy: ti.f32,

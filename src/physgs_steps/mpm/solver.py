@@ -97,7 +97,7 @@ class MPMSolver:
                  dynamics: Dynamics | None = None, backend: str = "cpu", labels: Sequence[int] | None = None,
                  sort_particles: bool = True, grid_mode: str = "auto", static: Sequence[StaticGeometry] = (),
                  p2g: str = "auto", run_length: int | str = "auto", resort_every: int | None = None,
-                 split: int = P2G.SPLIT,
+                 split: int = P2G.SPLIT, staged: bool | None = None,
                  rigid_particles_per_cell: float | None = None):
         if not materials:
             raise ConfigError("materials", "at least one material is needed")
@@ -143,6 +143,10 @@ class MPMSolver:
         self.run_length = run_length
         self.resort_every = int(resort_every)
         self.split = int(split)
+        if staged and (self.arch != "cuda" or self.private_grid):
+            raise ConfigError("staged", f"staged G2P stores need CUDA and one grid, the backend is {self.arch}")
+        self._staged_asked = staged  # None: CUDA without rigid materials (staged.py); resolved with the particles
+        self.staged = False
         self._sorter = None  # coarsened P2G: the device sort (p2g_sorted.DeviceSort)
         self._since_sort = 0
         self.sort_generation = 0  # counts device re-sorts (storage order changes)
@@ -248,8 +252,11 @@ class MPMSolver:
         run = self.run_length if self.p2g == "coarsened" and not self.private_grid else 0  # else unused: one build
         if run == P2G.CELL and not self._sorting:
             run = P2G.RUN_LENGTH  # cells need the device sort's ranges
+        # staged G2P stores (staged.py): CUDA, one grid, no rigid material (rigid.py sets its F and tau)
+        can_stage = self.arch == "cuda" and not self.private_grid and RIGID_KEY not in self.combos
+        self.staged = can_stage and self._staged_asked is not False
         spec = K.Spec(self.combos, *self.bound.spec(), bool(self._static_geoms), self.private_grid, p2g=self.p2g,
-                      run=run, split=self.split if run > 0 else 1)
+                      run=run, split=self.split if run > 0 else 1, staged=self.staged)
         self._k = K.build(spec)
         self._launch_substep = Launcher(self._k.substep)  # backend.Launcher: no per-call argument processing
         self._batches = None  # substeps(): ti.graph batches of the substep kernel (_Batches), built on first use
@@ -456,7 +463,7 @@ class MPMSolver:
         self.grid_c = ti.ndarray(ti.f32, (T, G, G, G))  # 1 where a particle touching an obstacle transfers
         self.grid_b = ti.ndarray(K.vec3, (G, G, G))  # grid velocities after the boundary conditions
         # FLIP materials (materials.FLIP_RATIO): the pre-force momenta of the substep's P2G
-        self.grid_o = ti.ndarray(K.vec3, (G, G, G) if K.uses_flip(self.combos) else (1, 1, 1))
+        self.grid_o = ti.ndarray(K.vec3, (T, G, G, G) if K.uses_flip(self.combos) else (1, 1, 1, 1))
         self.grid_r = ti.ndarray(ti.i32, (1, 1, 1, 1))  # rigid bodies: 1 + the body covering a node (_setup_rigid)
         self.grid_rm = ti.ndarray(ti.f32, (1, 1, 1, 1))
         self.grid_rv = ti.ndarray(K.vec3, (1, 1, 1, 1))
