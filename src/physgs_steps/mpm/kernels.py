@@ -790,15 +790,18 @@ def build(spec: Spec) -> SimpleNamespace:
                 grid_o[0, node[0], node[1], node[2]] += (w[i][0] * w[j][1] * w[k][2]) * (mv + mC @ dpos)
 
     @ti.func
-    def _g2p_particle(p, x: ti.template(), F: ti.template(), v: ti.template(), ep: ti.template(), mat: ti.template(),
+    def _g2p_particle(p, x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), tau: ti.template(),
+                      ep: ti.template(), mat: ti.template(), store: ti.template(),
                       grid_v: ti.template(), grid_m: ti.template(), grid_b: ti.template(), grid_o: ti.template(),
                       grid_r: ti.template(), gbody: ti.template(), bphi: ti.template(), body_c: ti.template(),
                       body_R: ti.template(), mparams: ti.template(), mcombo: ti.template(), dyn: ti.template(),
                       lvl_phi: ti.template(), lvl_id: ti.template(), lvl_rows: ti.template(), err: ti.template(), dt, t,
                       dx, inv_dx, G, L, wall):
         """G2P of particle p (reads the grid's boundary field grid_b): its new position, velocity,
-        C, F after the return map and the stress of that F, its tearing strain, and whether F
-        and tau are to be stored (0 for a rigid particle: rigid.py's scatter sets them)."""
+        C, F after the return map and the stress of that F, and its tearing strain.  With
+        ``store`` (compile-time) it also stores them into x, v, C, F, tau, ep (F, tau and ep
+        not for a rigid particle: rigid.py's scatter sets them); the staged G2P stores them
+        itself (staged.py)."""
         xp = x[p]
         m = mat[p]
         rigid = _is_rigid(m, mcombo)
@@ -878,6 +881,10 @@ def build(spec: Spec) -> SimpleNamespace:
         F_new = F_trial
         tau_new = ti.Matrix.zero(ti.f32, 3, 3)
         ep_p = 0.0
+        if ti.static(store):
+            v[p] = new_v
+            C[p] = new_C
+            x[p] = x_new
         if rigid == 0:  # a rigid particle's F and tau are set by rigid.py's scatter after this kernel
             q = _qrow(mparams, m)
             cid = 0
@@ -886,7 +893,12 @@ def build(spec: Spec) -> SimpleNamespace:
             if ti.static(any_fracture):
                 ep_p = ep[p]
             F_new, tau_new, ep_p = update(F_trial, cid, q, ep_p)
-        return x_new, new_v, new_C, F_new, tau_new, ep_p, 1 - rigid
+            if ti.static(store):
+                F[p] = F_new
+                tau[p] = tau_new
+                if ti.static(any_fracture):
+                    ep[p] = ep_p
+        return x_new, new_v, new_C, F_new, tau_new, ep_p
 
     @ti.func
     def _substep(x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), tau: ti.template(),
@@ -1229,8 +1241,8 @@ def build(spec: Spec) -> SimpleNamespace:
                     sh = ti.simt.block.SharedArray((ST.STAGE_BLOCK * ST.STAGE_WORDS,), ti.f32)
                     tid = p % ST.STAGE_BLOCK
                     if p < P:
-                        x_new, new_v, new_C, F_new, tau_new, ep_p, _upd = _g2p_particle(
-                            p, x, F, v, ep, mat, grid_v, grid_m, grid_b, grid_o, grid_r, gbody, bphi, body_c, body_R, mparams, mcombo,
+                        x_new, new_v, new_C, F_new, tau_new, ep_p = _g2p_particle(
+                            p, x, v, C, F, tau, ep, mat, False, grid_v, grid_m, grid_b, grid_o, grid_r, gbody, bphi, body_c, body_R, mparams, mcombo,
                             dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
                         ST.stage_put(sh, tid, x_new, new_v, new_C, F_new, tau_new)
                         if ti.static(any_fracture):
@@ -1240,17 +1252,9 @@ def build(spec: Spec) -> SimpleNamespace:
                     ti.simt.block.sync()  # all written: a thread's next slot (grid-stride loop) may refill sh
             else:
                 for p in range(P):
-                    x_new, new_v, new_C, F_new, tau_new, ep_p, upd = _g2p_particle(
-                        p, x, F, v, ep, mat, grid_v, grid_m, grid_b, grid_o, grid_r, gbody, bphi, body_c, body_R, mparams, mcombo,
-                        dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx, G, L, wall)
-                    v[p] = new_v
-                    C[p] = new_C
-                    x[p] = x_new
-                    if upd == 1:
-                        F[p] = F_new
-                        tau[p] = tau_new
-                        if ti.static(any_fracture):
-                            ep[p] = ep_p
+                    _g2p_particle(p, x, v, C, F, tau, ep, mat, True, grid_v, grid_m, grid_b, grid_o, grid_r, gbody, bphi,
+                                  body_c, body_R, mparams, mcombo, dyn, lvl_phi, lvl_id, lvl_rows, err, dt, t, dx, inv_dx,
+                                  G, L, wall)
 
     @ti.kernel
     def substep(x: V1, v: V1, C: M1, F: M1, tau: M1, ep: S1, p_vol: S1, p_face: S1, p_mass: S1, mat: I1, act_bits: I1,
