@@ -18,6 +18,7 @@ Arrays (SI units inside the solver: metres, m/s, s, Pa):
     act_bits [P] int      particle-action membership bits (see dynamics.py)
     grid_v [T,G,G,G] vec3 grid momentum, then velocity (in chunk 0)
     grid_m [T,G,G,G]      grid mass
+    grid_o [T,G,G,G] vec3 FLIP materials only: the pre-force momenta (summed into chunk 0)
     mparams [K, N_PARAMS] materials.PARAM_COLUMNS (mu, lam, density, yield_stress, ...)
     mcombo [K] int        index of the material's (elasticity, plasticity) pair in Spec.combos
     dyn [R, 12]           dynamics table (dynamics.py)

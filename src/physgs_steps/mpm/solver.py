@@ -462,7 +462,8 @@ class MPMSolver:
         self.grid_m = ti.ndarray(ti.f32, (T, G, G, G))
         self.grid_c = ti.ndarray(ti.f32, (T, G, G, G))  # 1 where a particle touching an obstacle transfers
         self.grid_b = ti.ndarray(K.vec3, (G, G, G))  # grid velocities after the boundary conditions
-        # FLIP materials (materials.FLIP_RATIO): the pre-force momenta of the substep's P2G
+        # FLIP materials (materials.FLIP_RATIO): the pre-force momenta of the substep's P2G, a grid per
+        # chunk like grid_v (summed into chunk 0 in the grid update: reproducible on the CPU)
         self.grid_o = ti.ndarray(K.vec3, (T, G, G, G) if K.uses_flip(self.combos) else (1, 1, 1, 1))
         self.grid_r = ti.ndarray(ti.i32, (1, 1, 1, 1))  # rigid bodies: 1 + the body covering a node (_setup_rigid)
         self.grid_rm = ti.ndarray(ti.f32, (1, 1, 1, 1))
