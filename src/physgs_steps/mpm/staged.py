@@ -24,7 +24,7 @@ and F, read word by word into shared memory before the particle's work.  On one 
 10^6 particles, same call) stores alone ran 1.86e9 particle-substeps/s, stores and P2G's loads
 1.68e9, stores and G2P's loads 1.42e9, all three 1.25e9, none 1.59e9: the loads hit L1 (a
 warp's 9 loads of a matrix share 36 sectors), and staging them added barriers and registers
-(G2P 220 a thread, P2G 400 us against 313 us).
+(G2P 220 registers a thread, P2G 400 us against 313 us).
 """
 
 import taichi as ti
