@@ -873,7 +873,9 @@ class MPMSolver:
         backup = 4 * (3 + 3 + 9 + 9 + 9 + 1) * P if self._backup is not None else 0
         sort = self._sorter.nbytes() if self._sorter is not None else 0
         owner = 20 * self.n_chunks * G ** 3 if RIGID_KEY in self.combos else 0  # grid_r, grid_rm, grid_rv
-        return per_particle * P + 16 * self.n_chunks * G ** 3 + owner + backup + sort
+        flip = 12 * self.n_chunks * G ** 3 if K.uses_flip(self.combos) else 0  # grid_o
+        grids = 20 * self.n_chunks * G ** 3 + 12 * G ** 3  # grid_v, grid_m, grid_c per chunk; grid_b
+        return per_particle * P + grids + owner + flip + backup + sort
 
     # ------------------------------------------------------------------ helpers
     def wave_speeds(self) -> np.ndarray:
