@@ -89,6 +89,9 @@ class MPMSolver:
             None: p2g_sorted.RESORT_EVERY, or RESORT_EVERY_WARP for warp runs).
         split: coarsened P2G with ``run_length`` particles per thread: threads per run (1, 3 or
             9), each summing its share of the 27 nodes (p2g_sorted.SPLITS); else unused.
+        staged: G2P's new particle state stored through shared memory (staged.py): None (the
+            default) on CUDA without a rigid material, False never; True outside CUDA (or with
+            private grids) is a ConfigError. With a rigid material G2P stores directly.
         rigid_particles_per_cell: simulate each free rigid body with proxy particles, about this
             many per grid cell (rigid.py "Proxy particles"); None: with every particle.
     """
