@@ -62,11 +62,17 @@ RUN_AUTO = {"cpu": RUN_LENGTH, "cuda": WARP}
 # 1.05-1.13e9 (mean 1.13e9), every 8 1.46e9 then 1.14-1.21e9 (1.22e9), every 4 1.33e9 then
 # 1.18-1.27e9 (1.24e9), every 2 1.19e9 mean; 300k: 0.84e9, 0.84e9, 0.88e9 and 0.61e9 means.
 # 8 loses 1 % while the order holds and gains 8 % once it does not (README "Issue 18, eighth
-# round").  A sort costs about 0.45 ms at 10^6 (mostly the scatter of every particle array).
+# round").  A sort costs about 0.45 ms at 10^6 (mostly the scatter of every particle array;
+# 0.452 ms for the scatter alone in Taichi's profiler, one H100; a scatter word by word was
+# cheaper at 10^6 but not faster at the default interval, and slower at 300k: README "Issue
+# 18, eleventh round").
 RESORT_EVERY = 8
 # The same for warp runs, which sort each warp's particles themselves: a stale order costs them
 # less.  Same H100 call as RUN_AUTO: 10^6 particles 1.35e9 (every 8), 1.37e9 (16), 1.38e9 (32);
-# 300k 1.04e9, 1.08e9, 1.10e9.
+# 300k 1.04e9, 1.08e9, 1.10e9.  Again with staged G2P stores (one H100, 2026-11-28, --windows 6,
+# window means): 10^6 1.63e9 (8), 1.66e9 (16), 1.65-1.71e9 (32), 1.65e9 (64, 128), 1.66e9 (never);
+# 300k faster the less it sorts (1.12-1.16e9 at 32, 1.25e9 never) in that 1.4 s of jelly, which
+# does not mix as sand or a fluid does (README "Issue 18, eleventh round").
 RESORT_EVERY_WARP = 32
 # CUDA: threads per run in coarsened P2G (SPLITS below).  Measured on one H200 (bench_mpm.py,
 # jelly, best of 3 interleaved rounds, median in brackets): 300k particles 8.83e8 (7.79e8)
@@ -85,6 +91,10 @@ SCAN_BLOCK = 128  # entries each thread sums serially in the prefix sum
 # row are then a segment; each node's four sums are reduced over the segment by shuffles (a
 # segmented scan down the lanes, five steps), and the segment's first lane adds them to the
 # grid: one atomic per run and node, with no 27 x 4 accumulator held across particles.
+# Summing the segments through shared memory instead (each lane's node sums written to its
+# warp's part of a shared array, the (segment, sum) pairs shared out among the lanes) was
+# slower: 1.77e9 (median 1.37e9) against 1.92e9 (1.67e9) particle-substeps/s at 10^6 on one
+# H100, same run (README "Issue 18, eleventh round").
 WARP_SIZE = 32
 FULL_MASK = 0xFFFFFFFF
 NO_KEY = 0x7FFFFFFF  # an empty lane's key (past the last particle): sorts last
