@@ -39,6 +39,7 @@ import sys
 import time
 from pathlib import Path
 
+from .worker import _connect  # a connection to a Unix socket, or None where nothing listens
 from .worker import _messages as _lines  # newline-delimited JSON messages, as the worker reads them
 
 DEFAULT_IDLE_SECONDS = 600.0
@@ -295,16 +296,6 @@ def _reap(started: dict) -> None:
 
 
 # ============================================================================ client
-def _connect(path: Path) -> socket.socket | None:
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    try:
-        s.connect(str(path))
-        return s
-    except OSError:
-        s.close()
-        return None
-
-
 def _start(path: Path, idle_seconds: float) -> socket.socket | None:
     import fcntl
     import subprocess
