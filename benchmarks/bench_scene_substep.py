@@ -16,7 +16,7 @@ other load, the CPU time mostly the work (compare before/after with it, alternat
 
 Measured on the 2-core CPU machine (duck_stone: 4,306 particles, 2,684 of them one free rigid
 body), one thread, base b6562d3 / branch cpu_substep in one session: kernels 7.81 / 5.95 ms a
-substep, wall 9.9 / 7.0 ms (README "Measured", CPU substep).
+substep, wall 9.9 / 7.0 ms (docs/MEASURED.md, CPU substep).
 """
 import argparse
 import logging

@@ -199,7 +199,7 @@ def test_bad_files_and_config(tmp_path):
 
 
 def test_final_frames_sheet_shows_each_videos_last_frame(tmp_path):
-    """The before/after sheet (README, rigid instances): one tile per video, its last frame."""
+    """The before/after sheet (docs/MEASURED.md, rigid instances): one tile per video, its last frame."""
     from physgs_steps.render.video import VideoWriter, final_frames_sheet
 
     paths = []

@@ -15,7 +15,7 @@ the second (``logs/`` and ``benchmarks/`` are left out: they hold times):
 * anything else: byte for byte.
 
 Prints one line per difference and a summary; exits 1 when anything differs or is missing.
-The fill speed-ups of issue 18 were checked with it (README "Fixed costs, second round").
+The fill speed-ups of issue 18 were checked with it (docs/MEASURED.md "Fixed costs, second round").
 """
 from __future__ import annotations
 

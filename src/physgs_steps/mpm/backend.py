@@ -32,7 +32,7 @@ def advanced_optimization() -> bool:
     Measured on the 2-core CPU (3 material pairs, grid 32, 6000 particles, cold offline cache):
     the first substep (compilation) took 49.8 s with the passes and 9.5 s without; 200
     substeps then took 2.13 and 2.12 s with the same sum of positions. Results agree to float
-    rounding, not always bit for bit (README "Measured", kernel compilation). LLVM still
+    rounding, not always bit for bit (docs/MEASURED.md, kernel compilation). LLVM still
     optimises the generated code; these passes mostly shorten the IR before it, which LLVM
     does as well.
     """

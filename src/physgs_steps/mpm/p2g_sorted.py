@@ -1,4 +1,4 @@
-"""Sorted particles and run-coarsened P2G (docs/CONTRACTS.md "MPM step", README "Coarsened P2G").
+"""Sorted particles and run-coarsened P2G (docs/CONTRACTS.md "MPM step", docs/MEASURED.md "Coarsened P2G").
 
 With float atomics (CUDA), P2G costs most of a substep: particles stored sorted by cell make
 consecutive threads add into the same 27 grid nodes, and those atomics serialise.  The
@@ -25,7 +25,7 @@ reference); ``auto`` resolves per arch with :data:`AUTO`.
 * **Warp runs** (``run_length`` :data:`WARP`, CUDA's default: :data:`RUN_AUTO`): one thread
   per particle; each warp sorts its 32 particles by stencil base (a bitonic sort by shuffles),
   so that the runs which drift has split since the last device sort come together again
-  within the warp, and sums each run across its lanes (README "Issue 18, ninth round").
+  within the warp, and sums each run across its lanes (docs/MEASURED.md "Issue 18, ninth round").
 """
 
 import functools
@@ -41,10 +41,10 @@ AUTO = {"cpu": "atomic", "cuda": "coarsened"}  # what ``auto`` picks per arch
 # ``auto`` keeps the atomic transfer below this many particles: with RUN_LENGTH particles per
 # thread a small scene launches too few threads to fill a GPU (27k particles: 1.7k threads on
 # an H100 with room for 270k).  Measured on one H100: coarsened 1.58x atomic at 300k, 2.58x at
-# 1M; the default bear (27k) ran its substeps slower after the switch (README "MPM step").
+# 1M; the default bear (27k) ran its substeps slower after the switch (docs/MEASURED.md "MPM step").
 # Warp runs (CUDA's default run_length) have a thread per particle and beat the atomic transfer
 # at 30k (1.20x) and 100k (1.68x) in bench_mpm.py (one H100, 2026-11-28); the threshold stays
-# until the default bear's GPU pipeline is measured with them (README "Issue 18, ninth round").
+# until the default bear's GPU pipeline is measured with them (docs/MEASURED.md "Issue 18, ninth round").
 AUTO_MIN_PARTICLES = 200_000
 RUN_LENGTH = 16  # particles per thread in coarsened P2G with runs (the CPU's default; CUDA: run_length=16)
 CELL = -1  # run_length value: one thread per stencil-base cell of the last sort (its range of slots)
@@ -52,7 +52,7 @@ WARP = -2  # run_length value (CUDA): a thread per particle, each warp sorted, r
 # what run_length "auto" (the solver's default) picks per arch.  Measured on one H100
 # (2026-11-28, bench_mpm.py --windows 5, jelly box falling then landed, window means, same
 # call): warp runs 1.35e9 particle-substeps/s at 10^6 and 1.04e9 at 300k, against 1.10e9 and
-# 8.4e8 for runs of 16 (README "Issue 18, ninth round")
+# 8.4e8 for runs of 16 (docs/MEASURED.md "Issue 18, ninth round")
 RUN_AUTO = {"cpu": RUN_LENGTH, "cuda": WARP}
 # Substeps between device re-sorts in coarsened mode.  What spoils the order is relative motion
 # (a block that falls keeps its particles in order; one that bounces and wobbles does not), and
@@ -61,10 +61,10 @@ RUN_AUTO = {"cpu": RUN_LENGTH, "cuda": WARP}
 # falling window first, then the mean of all 8): 10^6 particles, every 16 substeps 1.48e9 then
 # 1.05-1.13e9 (mean 1.13e9), every 8 1.46e9 then 1.14-1.21e9 (1.22e9), every 4 1.33e9 then
 # 1.18-1.27e9 (1.24e9), every 2 1.19e9 mean; 300k: 0.84e9, 0.84e9, 0.88e9 and 0.61e9 means.
-# 8 loses 1 % while the order holds and gains 8 % once it does not (README "Issue 18, eighth
+# 8 loses 1 % while the order holds and gains 8 % once it does not (docs/MEASURED.md "Issue 18, eighth
 # round").  A sort costs about 0.45 ms at 10^6 (mostly the scatter of every particle array;
 # 0.452 ms for the scatter alone in Taichi's profiler, one H100; a scatter word by word was
-# cheaper at 10^6 but not faster at the default interval, and slower at 300k: README "Issue
+# cheaper at 10^6 but not faster at the default interval, and slower at 300k: docs/MEASURED.md "Issue
 # 18, eleventh round").
 RESORT_EVERY = 8
 # The same for warp runs, which sort each warp's particles themselves: a stale order costs them
@@ -72,7 +72,7 @@ RESORT_EVERY = 8
 # 300k 1.04e9, 1.08e9, 1.10e9.  Again with staged G2P stores (one H100, 2026-11-28, --windows 6,
 # window means): 10^6 1.63e9 (8), 1.66e9 (16), 1.65-1.71e9 (32), 1.65e9 (64, 128), 1.66e9 (never);
 # 300k faster the less it sorts (1.12-1.16e9 at 32, 1.25e9 never) in that 1.4 s of jelly, which
-# does not mix as sand or a fluid does (README "Issue 18, eleventh round").
+# does not mix as sand or a fluid does (docs/MEASURED.md "Issue 18, eleventh round").
 RESORT_EVERY_WARP = 32
 # CUDA: threads per run in coarsened P2G (SPLITS below).  Measured on one H200 (bench_mpm.py,
 # jelly, best of 3 interleaved rounds, median in brackets): 300k particles 8.83e8 (7.79e8)
@@ -94,7 +94,7 @@ SCAN_BLOCK = 128  # entries each thread sums serially in the prefix sum
 # Summing the segments through shared memory instead (each lane's node sums written to its
 # warp's part of a shared array, the (segment, sum) pairs shared out among the lanes) was
 # slower: 1.77e9 (median 1.37e9) against 1.92e9 (1.67e9) particle-substeps/s at 10^6 on one
-# H100, same run (README "Issue 18, eleventh round").
+# H100, same run (docs/MEASURED.md "Issue 18, eleventh round").
 WARP_SIZE = 32
 FULL_MASK = 0xFFFFFFFF
 NO_KEY = 0x7FFFFFFF  # an empty lane's key (past the last particle): sorts last

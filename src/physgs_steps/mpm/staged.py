@@ -7,7 +7,7 @@ instruction writes a 4-byte piece of 36 different 32-byte sectors, and L2 merges
 writes.  G2P writes x, v, C, F and tau (33 floats a particle): about 33 sector writes a
 particle where 4.1 would carry the bytes.  Nsight Compute on the landed jelly box of
 bench_mpm.py at 10^6 particles (one H100, 2026-11-28): G2P 327 us, its L2 at 84.5 % of its
-throughput (the kernel's limit), 29.3 M sector writes a launch (README "Issue 18, tenth
+throughput (the kernel's limit), 29.3 M sector writes a launch (docs/MEASURED.md "Issue 18, tenth
 round").
 
 So G2P stages: each thread puts its particle's 33 new values into shared memory
