@@ -419,7 +419,6 @@ def test_reps_knob(monkeypatch):
 def test_block_dim_knob_reaches_taichi():
     """PHYSGS_TI_BLOCK_DIM (the kernel experiments' knob, docs/MEASURED.md "MPM step") sets Taichi's
     default_gpu_block_dim; unset, Taichi keeps its own default."""
-    import os
     import subprocess
     import sys
 
